@@ -1,0 +1,44 @@
+"""accel: acceleration structures built in NumPy and flattened to arrays.
+
+``accel.build(name, vertices, faces, **params)`` is the one entry point. The record it
+returns (:class:`accel.structure.Structure`) is what ``jrt.closest_hit`` and
+``jrt.occluded`` traverse. This package never imports JAX.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from accel import brute
+from accel.structure import Structure
+
+_BUILDERS: dict[str, Callable[..., Structure]] = {
+    "brute": brute.build,
+}
+
+NAMES: tuple[str, ...] = tuple(_BUILDERS)
+
+
+def build(name: str, vertices: np.ndarray, faces: np.ndarray, **params) -> Structure:
+    """Build the structure ``name`` over a triangle mesh.
+
+    Args:
+        name: one of :data:`NAMES`.
+        vertices: float [V, 3] positions (stored as float32).
+        faces: int [F, 3] vertex indices.
+        **params: the builder's own parameters.
+    """
+    if name not in _BUILDERS:
+        raise ValueError(f"unknown acceleration structure {name!r}; allowed: {', '.join(NAMES)}")
+    vertices = np.asarray(vertices)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices must have shape [V, 3], got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces must have shape [F, 3], got {faces.shape}")
+    return _BUILDERS[name](vertices, faces, **params)
+
+
+__all__ = ["NAMES", "Structure", "build"]

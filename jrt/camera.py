@@ -1,0 +1,124 @@
+"""A pinhole camera: one ray per pixel centre, from the eye (reverse light path, seed §2).
+
+Rays start at the eye and go out through the image plane: by the principle of reverse
+light path (seed, Théorème 2.2) they retrace, backwards, the light that reaches the eye.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jrt.kernels import cross, dot
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """Pinhole camera. Lengths in scene units, the field of view in degrees.
+
+    Attributes:
+        eye: position of the pinhole.
+        target: the point the camera looks at (the image centre).
+        up: a vector giving the image's up direction (need not be orthogonal to the view).
+        vfov: vertical field of view, degrees, in (0, 180).
+        width, height: image size in pixels.
+    """
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    vfov: float = 35.0
+    width: int = 640
+    height: int = 480
+
+    def __post_init__(self):
+        for field in ("eye", "target", "up"):
+            value = np.asarray(getattr(self, field), np.float64)
+            if value.shape != (3,) or not np.all(np.isfinite(value)):
+                raise ValueError(f"camera {field} must be 3 finite numbers, got {value.tolist()}")
+            object.__setattr__(self, field, tuple(float(x) for x in value))
+        if not 0.0 < float(self.vfov) < 180.0:
+            raise ValueError(f"camera vfov must be in (0, 180) degrees, got {self.vfov}")
+        for field in ("width", "height"):
+            value = getattr(self, field)
+            if int(value) != value or int(value) < 1:
+                raise ValueError(f"camera {field} must be a positive integer, got {value}")
+        forward = np.subtract(self.target, self.eye)
+        if np.linalg.norm(forward) == 0:
+            raise ValueError("camera eye and target must differ")
+        if np.linalg.norm(np.cross(forward, self.up)) == 0:
+            raise ValueError("camera up must not be parallel to the view direction")
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.width) * int(self.height)
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height"))
+def _pinhole(eye, target, up, vfov_radians, width: int, height: int):
+    forward = target - eye
+    forward = forward / jnp.sqrt(dot(forward, forward))
+    right = cross(forward, up)
+    right = right / jnp.sqrt(dot(right, right))
+    true_up = cross(right, forward)
+    half_h = jnp.tan(vfov_radians / 2)
+    half_w = half_h * (width / height)
+    # Pixel centres; row 0 is the top of the image.
+    x = ((jnp.arange(width, dtype=jnp.float32) + 0.5) / width * 2 - 1) * half_w
+    y = (1 - (jnp.arange(height, dtype=jnp.float32) + 0.5) / height * 2) * half_h
+    d = (
+        forward[None, None, :]
+        + x[None, :, None] * right[None, None, :]
+        + y[:, None, None] * true_up[None, None, :]
+    ).reshape(-1, 3)
+    d = d / jnp.sqrt(dot(d, d))[:, None]
+    return jnp.broadcast_to(eye, d.shape), d
+
+
+def camera_rays(camera: Camera) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
+    """Origins and unit directions, float32 [height * width, 3], row-major from the top left."""
+    f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+    return _pinhole(
+        f32(camera.eye), f32(camera.target), f32(camera.up), f32(math.radians(camera.vfov)),
+        width=int(camera.width), height=int(camera.height),
+    )
+
+
+def frame_mesh(
+    vertices,
+    width: int = 640,
+    height: int = 480,
+    vfov: float = 30.0,
+    azimuth: float = 50.0,
+    elevation: float = 20.0,
+    margin: float = 0.85,
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0),
+) -> Camera:
+    """A camera that frames the whole bounding box of ``vertices`` [V, 3].
+
+    The eye sits on a sphere around the box centre, at ``azimuth`` degrees around the up
+    axis (0 looks along -z, from +z) and ``elevation`` degrees above the horizon, far enough
+    that the box's bounding sphere, times ``margin``, fits the narrower field of view.
+    The default is a 3/4 view from slightly above, for a y-up mesh.
+    """
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre = (lo + hi) / 2
+    radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-12)
+    half_v = math.radians(vfov) / 2
+    half_h = math.atan(math.tan(half_v) * width / height)
+    distance = radius * margin / math.sin(min(half_v, half_h))
+    az, el = math.radians(azimuth), math.radians(elevation)
+    offset = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+    if up != (0.0, 1.0, 0.0):
+        raise ValueError("frame_mesh places the eye for a y-up mesh; pass a Camera yourself")
+    return Camera(
+        eye=tuple(centre + distance * offset), target=tuple(centre), up=up, vfov=vfov,
+        width=width, height=height,
+    )
