@@ -83,7 +83,8 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
             chunk_row = jnp.where(t == chunk_t[None, :], rows, tri_chunk).min(axis=0) + base
             # Strict '<': an earlier chunk (lower rows) keeps a tie.
             better = chunk_t < best_t
-            return (jnp.where(better, chunk_t, best_t), jnp.where(better, chunk_row, best_row)), None
+            best = (jnp.where(better, chunk_t, best_t), jnp.where(better, chunk_row, best_row))
+            return best, None
 
         init = (jnp.full(o.shape[0], jnp.inf, o.dtype), jnp.full(o.shape[0], -1, jnp.int32))
         (best_t, best_row), _ = lax.scan(body, init, (tri_chunks, bases))

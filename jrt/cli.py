@@ -87,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     trace = sub.add_parser("trace", help="closest hits (or occlusion) of rays from a file")
     trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL), or 'camel' / 'camel-19k'")
-    trace.add_argument("rays", help=".npz with origins, directions float32 [N,3], optional tmax [N]")
+    trace.add_argument("rays",
+                       help=".npz with origins, directions float32 [N,3], optional tmax [N]")
     trace.add_argument("-o", "--output", required=True, help="output .npz of hits")
     trace.add_argument("--any-hit", action="store_true",
                        help="write 'occluded' (any hit before tmax) instead of closest hits")

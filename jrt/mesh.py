@@ -75,7 +75,8 @@ def mesh_from_arrays(vertices, faces, name: str = "mesh") -> Mesh:
         corners = faces.shape[1] if faces.ndim == 2 else "a ragged number of"
         raise MeshError(
             f"{name}: faces must be triangles, shape [F, 3]; got {corners} corners per face "
-            f"(shape {faces.shape}). Triangulate first, e.g. with trimesh.geometry.triangulate_quads"
+            f"(shape {faces.shape}). Triangulate first, e.g. with "
+            "trimesh.geometry.triangulate_quads"
         )
     if not np.issubdtype(faces.dtype, np.integer):
         if np.issubdtype(faces.dtype, np.floating) and np.all(np.isfinite(faces)) and np.all(
