@@ -105,7 +105,10 @@ def mesh_from_arrays(vertices, faces, name: str = "mesh") -> Mesh:
     f32 = faces.astype(np.int32)
     degenerate = np.flatnonzero(degenerate_mask(v32, f32)).astype(np.int32)
     if len(degenerate) == len(f32):
-        raise MeshError(f"{name}: all {len(f32)} triangles are degenerate (zero area)")
+        raise MeshError(
+            f"{name}: all {len(f32)} triangles are degenerate (zero area); "
+            "at least one triangle of non-zero area is needed"
+        )
     if len(degenerate):
         warnings.warn(
             f"{name}: {len(degenerate)} degenerate (zero-area) triangles kept but never hit "

@@ -21,12 +21,18 @@ class RaysFileError(ValueError):
 
 
 def _float_array(path, archive, name, shape_text, ndim, n=None):
-    a = archive[name]
+    try:
+        a = archive[name]
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise RaysFileError(f"{path}: '{name}' could not be read as a NumPy array ({exc})") from exc
+    if not isinstance(a, np.ndarray):
+        raise RaysFileError(f"{path}: '{name}' is not a .npy array inside the archive")
     if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
         raise RaysFileError(f"{path}: '{name}' must be float32 {shape_text}, got dtype {a.dtype}")
     if a.ndim != ndim or (ndim == 2 and a.shape[1] != 3) or (n is not None and a.shape[0] != n):
         raise RaysFileError(f"{path}: '{name}' must have shape {shape_text}, got {a.shape}")
-    return a.astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # too large -> inf, reported below
+        return a.astype(np.float32)
 
 
 def load_rays(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -36,7 +42,7 @@ def load_rays(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         raise RaysFileError(f"{path}: no such rays file")
     try:
         archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise RaysFileError(f"{path}: not a NumPy .npz archive ({exc})") from exc
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise RaysFileError(f"{path}: a single .npy array, expected an .npz archive with "

@@ -1,0 +1,1 @@
+"""Benchmarks and peers (Intel Embree through embreex). Uses jrt's public API only."""
