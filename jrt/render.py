@@ -23,7 +23,7 @@ from jaxtyping import Array, Float
 from accel.structure import Structure
 from jrt.camera import Camera, camera_rays
 from jrt.hits import Hits
-from jrt.kernels import DEFAULT_KERNEL, dot
+from jrt.kernels import DEFAULT_KERNEL, cross, dot
 from jrt.mesh import Mesh
 from jrt.trace import closest_hit, occluded
 
@@ -88,7 +88,7 @@ def _shade_points(hits: Hits, origins, directions, faces, vertices, normals, lam
     p = vertices[corners]
     point = (p * w).sum(axis=1)
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    ng = jnp.cross(e1, e2)
+    ng = cross(e1, e2)
     ng = ng / jnp.sqrt(jnp.maximum(dot(ng, ng), 1e-30))[:, None]
     # Face the viewer: both normals point back against the incoming ray.
     ng = jnp.where((dot(ng, directions) > 0)[:, None], -ng, ng)
