@@ -29,8 +29,8 @@ class EmbreePeer:
         with ThreadPoolExecutor(threads) as pool:
             return list(pool.map(lambda i: fn(bounds[i], bounds[i + 1]), range(threads)))
 
-    def closest_hit(self, origins, directions, tmax=None, threads: int = 1) -> dict:
-        """t (inf for a miss), triangle (-1), u, v: the same record as ``jrt.closest_hit``."""
+    def _query(self, origins, directions, tmax, threads, **query):
+        """embreex ``run`` over slices of the batch, one slice per thread."""
         o = np.ascontiguousarray(origins, np.float32)
         d = np.ascontiguousarray(directions, np.float32)
         dists = None if tmax is None else np.ascontiguousarray(
@@ -38,9 +38,13 @@ class EmbreePeer:
 
         def run(a, b):
             kwargs = {} if dists is None else {"dists": dists[a:b].copy()}
-            return self.scene.run(o[a:b], d[a:b], output=1, **kwargs)
+            return self.scene.run(o[a:b], d[a:b], **query, **kwargs)
 
-        parts = self._split(run, len(o), threads)
+        return self._split(run, len(o), threads)
+
+    def closest_hit(self, origins, directions, tmax=None, threads: int = 1) -> dict:
+        """t (inf for a miss), triangle (-1), u, v: the same record as ``jrt.closest_hit``."""
+        parts = self._query(origins, directions, tmax, threads, output=1)
         tri = np.concatenate([p["primID"] for p in parts]).astype(np.int32)
         hit = tri >= 0
         return {
@@ -53,13 +57,5 @@ class EmbreePeer:
 
     def occluded(self, origins, directions, tmax=None, threads: int = 1) -> np.ndarray:
         """bool [N]: any hit before tmax."""
-        o = np.ascontiguousarray(origins, np.float32)
-        d = np.ascontiguousarray(directions, np.float32)
-        dists = None if tmax is None else np.ascontiguousarray(
-            np.broadcast_to(np.asarray(tmax, np.float32), (len(o),)))
-
-        def run(a, b):
-            kwargs = {} if dists is None else {"dists": dists[a:b].copy()}
-            return self.scene.run(o[a:b], d[a:b], query="OCCLUDED", **kwargs)
-
-        return np.concatenate(self._split(run, len(o), threads)) >= 0
+        parts = self._query(origins, directions, tmax, threads, query="OCCLUDED")
+        return np.concatenate(parts) >= 0
