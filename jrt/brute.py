@@ -94,13 +94,17 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
     best_t, best_row = best_t.reshape(-1)[:n], best_row.reshape(-1)[:n]
     hit = best_row >= 0
     row = jnp.maximum(best_row, 0)
-    tri = triangles[row]
+    # Gather from the padded chunks: they hold at least one (zero) row even when the
+    # structure has no triangle at all.
+    tri = tri_chunks.reshape(-1, 3, 3)[row]
+    ids = jnp.pad(triangle_ids, (0, tri_chunks.shape[0] * tri_chunk - triangle_ids.shape[0]),
+                  constant_values=-1)
     # Barycentrics of the winner only: one more kernel call per ray, not per pair.
     _, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
     zero = jnp.zeros_like(best_t)
     return Hits(
         t=best_t,
-        triangle=jnp.where(hit, triangle_ids[row], -1).astype(jnp.int32),
+        triangle=jnp.where(hit, ids[row], -1).astype(jnp.int32),
         u=jnp.where(hit, u, zero),
         v=jnp.where(hit, v, zero),
     )

@@ -43,6 +43,31 @@ def cross(a: Vec, b: Vec) -> Vec:
     )
 
 
+def _abs_cross(a: Vec, b: Vec) -> Vec:
+    """|a| × |b| with the signs dropped: bounds the rounding error of ``a × b``."""
+    a, b = jnp.abs(a), jnp.abs(b)
+    return jnp.stack(
+        [
+            a[..., 1] * b[..., 2] + a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] + a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def _resolvable(value: Scalar, magnitude: Scalar) -> Scalar:
+    """|value| exceeds 8 ε x magnitude: its sign is not rounding noise.
+
+    A triple product such as Möller–Trumbore's ``det`` or the seed's ``N·D`` is exactly 0
+    for a ray in the triangle's plane or a degenerate triangle, but the compiled code may
+    evaluate it with fused multiply-adds and leave a residue of a few ulps of the terms'
+    magnitude, which a plain ``!= 0`` test would take for a (wildly wrong) hit.
+    """
+    eps = jnp.finfo(value.dtype).eps
+    return jnp.abs(value) > 8 * eps * magnitude
+
+
 def _finish(hit, t, u, v):
     """Masks a miss to (inf, 0, 0). NaN comparisons are False, so NaN never passes ``hit``."""
     inf = jnp.asarray(jnp.inf, t.dtype)
@@ -63,7 +88,8 @@ def plane_barycentric(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
     while their sum exceeds 1). Projecting on ``N`` instead keeps the sign, which is the
     same quantity inside the triangle and the right test outside it.
 
-    A ray parallel to the plane (``N·D == 0``) and a degenerate triangle (``N == 0``) miss.
+    A ray parallel to the plane and a degenerate triangle (``N·D`` zero up to its rounding
+    error, see ``_resolvable``) miss.
     The form ``d - N·O`` is kept as the seed gives it: it loses digits when the origin is far
     from the plane, which the numerical-stability study measures.
     """
@@ -79,7 +105,8 @@ def plane_barycentric(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
     b1 = dot(cross(v0 - v2, point - v2), normal) * inv_nn
     b2 = dot(cross(e1, point - v0), normal) * inv_nn
     inside = (b0 >= 0) & (b0 <= 1) & (b1 >= 0) & (b1 <= 1) & (b2 >= 0) & (b2 <= 1)
-    hit = (n_dot_d != 0) & (t > 0) & (t < jnp.inf) & inside
+    parallel = ~_resolvable(n_dot_d, dot(jnp.abs(direction), _abs_cross(e1, e2)))
+    hit = ~parallel & (t > 0) & (t < jnp.inf) & inside
     return _finish(hit, t, b1, b2)
 
 
@@ -88,7 +115,8 @@ def moller_trumbore(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
 
     Solves ``O + t D = (1 - u - v) v0 + u v1 + v v2`` by Cramer's rule with the scalar
     triple products of ``e1 = v1 - v0``, ``e2 = v2 - v0`` and ``s = O - v0``. Both faces are
-    hit (no culling); ``det == 0`` (parallel ray or degenerate triangle) is a miss. Borders
+    hit (no culling); ``det`` zero up to its rounding error (a ray in the triangle's plane, a
+    degenerate triangle; see ``_resolvable``) is a miss. Borders
     are inclusive: ``u >= 0, v >= 0, u + v <= 1``. Shared edges can still leak a ray in
     float32, since the two neighbours round their edge tests differently.
     """
@@ -102,7 +130,8 @@ def moller_trumbore(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
     q = cross(s, e1)
     v = dot(direction, q) * inv_det
     t = dot(e2, q) * inv_det
-    hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < jnp.inf)
+    parallel = ~_resolvable(det, dot(jnp.abs(e1), _abs_cross(direction, e2)))
+    hit = ~parallel & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < jnp.inf)
     return _finish(hit, t, u, v)
 
 
