@@ -8,7 +8,6 @@ with the same layout and array shapes share one compiled kernel.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
 from accel.structure import Structure
 
@@ -24,15 +23,5 @@ def _unflatten(aux, children) -> Structure:
     return Structure(kind=kind, arrays=dict(zip(names, children, strict=True)), layout=layout)
 
 
-jax.tree_util.register_pytree_with_keys(
-    Structure, _flatten_with_keys, _unflatten, flatten_func=lambda s: (
-        tuple(s.arrays[n] for n in sorted(s.arrays)),
-        (s.kind, tuple(sorted(s.arrays)), s.layout),
-    )
-)
+jax.tree_util.register_pytree_with_keys(Structure, _flatten_with_keys, _unflatten)
 
-
-def to_device(structure: Structure) -> Structure:
-    """The same record with its arrays as JAX arrays (the stats are kept)."""
-    arrays = {k: jnp.asarray(v) for k, v in structure.arrays.items()}
-    return Structure(structure.kind, arrays, structure.layout, structure.stats)

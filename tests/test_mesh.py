@@ -83,24 +83,21 @@ def test_complex_vertices_are_rejected():
         _valid(vertices=TRIANGLE_V.astype(np.complex128))
 
 
-def test_nan_vertex():
+@pytest.mark.parametrize(
+    ("row", "column", "value", "shown"),
+    [
+        (1, 2, np.nan, r"vertex 1 = \[1\.0, 0\.0, nan\]"),
+        (2, 0, np.inf, r"vertex 2 = \[inf, 1\.0, 0\.0\]"),
+    ],
+    ids=["nan", "positive_inf"],
+)
+def test_non_finite_vertex(row, column, value, shown):
     v = TRIANGLE_V.copy()
-    v[1, 2] = np.nan
+    v[row, column] = value
     with pytest.raises(
         MeshError,
-        match=r"1 vertices have NaN or infinite coordinates.*vertex 1 = \[1\.0, 0\.0, nan\]"
-        r".*all coordinates must be finite",
-    ):
-        _valid(vertices=v)
-
-
-def test_positive_inf_vertex():
-    v = TRIANGLE_V.copy()
-    v[2, 0] = np.inf
-    with pytest.raises(
-        MeshError,
-        match=r"1 vertices have NaN or infinite coordinates.*vertex 2 = \[inf, 1\.0, 0\.0\]"
-        r".*all coordinates must be finite",
+        match=r"1 vertices have NaN or infinite coordinates.*" + shown
+        + r".*all coordinates must be finite",
     ):
         _valid(vertices=v)
 
