@@ -11,11 +11,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from accel import brute
+from accel import brute, bvh
 from accel.structure import Structure
 
 _BUILDERS: dict[str, Callable[..., Structure]] = {
     "brute": brute.build,
+    "bvh": bvh.build,
 }
 
 NAMES: tuple[str, ...] = tuple(_BUILDERS)

@@ -6,6 +6,12 @@ the classic emitter (measured on the camel, jax 0.10.2: Möller–Trumbore brute
 vs 790 M tests/s on one core). Flags are read when the backend starts, so this only takes
 effect if jrt is imported before the first JAX computation; an explicit setting of the
 same flag in ``XLA_FLAGS`` is left as it is.
+
+``--xla_force_host_platform_device_count=K``: one XLA CPU device per core (K =
+``os.cpu_count()``, or ``JRT_CPU_DEVICES`` when set). A ``while_loop`` runs on one thread
+and XLA's own intra-op threading does not split it, so the traversal engine splits its
+rays over these devices (``shard_map``); a prototype measured 1.7-2x on two cores.
+Computations that do not shard still run on device 0 as before.
 """
 
 from __future__ import annotations
@@ -15,9 +21,23 @@ import os
 _FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
 
 
+def _device_count() -> int:
+    value = os.environ.get("JRT_CPU_DEVICES")
+    if value is None:
+        return max(1, os.cpu_count() or 1)
+    try:
+        count = int(value)
+    except ValueError:
+        count = 0
+    if count < 1:
+        raise ValueError(f"JRT_CPU_DEVICES must be a positive integer, got {value!r}")
+    return count
+
+
 def apply() -> None:
     current = os.environ.get("XLA_FLAGS", "")
-    for flag in _FLAGS:
+    flags = (*_FLAGS, f"--xla_force_host_platform_device_count={_device_count()}")
+    for flag in flags:
         name = flag.split("=")[0]
         if name not in current:
             current = f"{current} {flag}".strip()

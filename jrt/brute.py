@@ -5,8 +5,9 @@ Never builds a [rays x triangles] array: rays go through in chunks of ``ray_chun
 stays at ``ray_chunk x tri_chunk`` whatever the sizes. The oracle that every acceleration
 structure is checked against.
 
-Tie rule (shared by every traversal): the smallest ``t`` wins, and among equal ``t`` the
-lowest triangle row (the lowest face index, since rows keep the mesh's order).
+Tie rule (shared by every traversal, ``jrt.hits.prefer``): the smallest ``t`` wins, and
+among hits tied within 2^-20 of ``t`` the lowest triangle row (the lowest face index,
+since rows keep the mesh's order).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from jrt.hits import Hits
+from jrt.hits import Hits, prefer, tie_window, winner_hits
 from jrt.kernels import get_kernel
 
 RAY_CHUNK = 256
@@ -78,11 +79,15 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
             # Two plain reductions instead of one argmin: a variadic (value, index) reduce
             # does not vectorise on XLA:CPU and ran 10x slower. The lowest row among equal
             # t wins, as the tie rule asks.
-            chunk_t = t.min(axis=0)
+            # The tie rule (jrt.hits.prefer): the lowest row among the hits tied with the
+            # chunk's smallest t, then against the best of the earlier chunks.
+            chunk_min = t.min(axis=0)
             rows = lax.broadcasted_iota(jnp.int32, t.shape, 0)
-            chunk_row = jnp.where(t == chunk_t[None, :], rows, tri_chunk).min(axis=0) + base
-            # Strict '<': an earlier chunk (lower rows) keeps a tie.
-            better = chunk_t < best_t
+            tied = (t <= (chunk_min + tie_window(chunk_min))[None, :]) & (t < jnp.inf)
+            local = jnp.where(tied, rows, tri_chunk).min(axis=0)
+            chunk_t = jnp.where(rows == local[None, :], t, jnp.inf).min(axis=0)
+            chunk_row = jnp.where(local < tri_chunk, local + base, -1)
+            better = (chunk_row >= 0) & prefer(chunk_t, chunk_row, best_t, best_row)
             best = (jnp.where(better, chunk_t, best_t), jnp.where(better, chunk_row, best_row))
             return best, None
 
@@ -92,22 +97,10 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
 
     best_t, best_row = lax.map(per_ray_chunk, (o, d, tm))
     best_t, best_row = best_t.reshape(-1)[:n], best_row.reshape(-1)[:n]
-    hit = best_row >= 0
-    row = jnp.maximum(best_row, 0)
-    # Gather from the padded chunks: they hold at least one (zero) row even when the
-    # structure has no triangle at all.
-    tri = tri_chunks.reshape(-1, 3, 3)[row]
-    ids = jnp.pad(triangle_ids, (0, tri_chunks.shape[0] * tri_chunk - triangle_ids.shape[0]),
-                  constant_values=-1)
-    # Barycentrics of the winner only: one more kernel call per ray, not per pair.
-    _, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
-    zero = jnp.zeros_like(best_t)
-    return Hits(
-        t=best_t,
-        triangle=jnp.where(hit, ids[row], -1).astype(jnp.int32),
-        u=jnp.where(hit, u, zero),
-        v=jnp.where(hit, v, zero),
-    )
+    # The winner's t, u, v evaluated once, as every traversal does (see winner_hits).
+    return winner_hits(fn, origins, directions, tri_chunks.reshape(-1, 3, 3),
+                       jnp.pad(triangle_ids, (0, tri_chunks.shape[0] * tri_chunk
+                                              - triangle_ids.shape[0])), best_row)
 
 
 @functools.partial(jax.jit, static_argnames=("kernel", "ray_chunk", "tri_chunk"))

@@ -82,8 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     def common(p):
         p.add_argument("--kernel", choices=tuple(KERNELS), default=DEFAULT_KERNEL,
                        help=f"ray-triangle kernel (default {DEFAULT_KERNEL})")
-        p.add_argument("--accel", choices=accel.NAMES, default="brute",
-                       help="acceleration structure (default brute)")
+        p.add_argument("--accel", choices=accel.NAMES, default="bvh",
+                       help="acceleration structure (default bvh; brute is the oracle)")
 
     trace = sub.add_parser("trace", help="closest hits (or occlusion) of rays from a file")
     trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL), or 'camel' / 'camel-19k'")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 
@@ -20,3 +21,49 @@ class Hits(NamedTuple):
     triangle: Int[Array, " n"]
     u: Float[Array, " n"]
     v: Float[Array, " n"]
+
+
+#: Two hits whose ``t`` differ by at most this fraction of ``t`` are tied, and the lower
+#: face index wins. Exact equality is not enough: XLA:CPU contracts multiply-adds into
+#: fused ones differently in each compiled program, so the same kernel on the same
+#: triangle can return ``t`` one or two ulps apart in a traversal loop and in brute
+#: force; 2^-20 is 8 ulps of float32. Every traversal applies :func:`prefer`.
+TIE_RELATIVE = 2.0**-20
+
+
+def tie_window(t):
+    """Half-width of the band of ``t`` values tied with ``t``."""
+    return jnp.abs(t) * TIE_RELATIVE
+
+
+def prefer(t, face, best_t, best_face):
+    """Does a hit (t, face) replace the best so far (best_face -1: none yet)?
+
+    Tie rule, shared by every traversal and brute force: a clearly smaller ``t`` wins;
+    within the tie window the lower face index wins.
+    """
+    window = tie_window(best_t)
+    return (best_face < 0) | (t < best_t - window) | ((t <= best_t + window) & (face < best_face))
+
+
+def winner_hits(fn, origins, directions, triangles, triangle_ids, rows) -> Hits:
+    """The hit record of each ray's winning row (-1: a miss), evaluated in one place.
+
+    XLA fuses the kernel differently inside each traversal loop, and the compiled code
+    may round one ulp differently (fused multiply-adds); evaluating t, u, v of the winner
+    once, elementwise over all rays, gives every structure (and brute force) the same
+    numbers for the same triangle.
+    """
+    rows = jnp.where(rows >= 0, rows, -1)
+    safe = jnp.maximum(rows, 0)
+    if triangles.shape[0] == 0:
+        tri = jnp.zeros((rows.shape[0], 3, 3), origins.dtype)
+        face = jnp.full(rows.shape, -1, jnp.int32)
+    else:
+        tri = triangles[safe]
+        face = triangle_ids[safe]
+    t, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
+    hit = (rows >= 0) & (t < jnp.inf)
+    zero = jnp.zeros_like(t)
+    return Hits(t=jnp.where(hit, t, jnp.inf), triangle=jnp.where(hit, face, -1),
+                u=jnp.where(hit, u, zero), v=jnp.where(hit, v, zero))

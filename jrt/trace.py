@@ -11,15 +11,23 @@ direction's length.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from accel.structure import Structure
-from jrt import brute
+from jrt import brute, bvh, engine
 from jrt import structure as _structure  # noqa: F401  (registers Structure as a pytree)
+from jrt.engine import Counters, StackOverflowError
 from jrt.hits import Hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
+
+#: Structure kind -> its engine traversal (a function of the structure's static layout).
+TRAVERSALS = {
+    "bvh": lambda s: bvh.make(s.layout_value("leaf_bits")),
+}
+KINDS = ("brute", *TRAVERSALS)
 
 
 def _check_rays(origins, directions, tmax):
@@ -45,8 +53,44 @@ def _check_structure(structure):
         raise TypeError(
             f"structure must be an accel.Structure (from accel.build), got {type(structure)}"
         )
-    if structure.kind != "brute":
-        raise ValueError(f"no traversal for structure kind {structure.kind!r}; allowed: brute")
+    if structure.kind not in KINDS:
+        raise ValueError(f"no traversal for structure kind {structure.kind!r}; "
+                         f"allowed: {', '.join(KINDS)}")
+
+
+def _check_options(lanes, stack_size):
+    if not (isinstance(lanes, int) and lanes >= 1):
+        raise ValueError(f"lanes must be a positive integer, got {lanes!r}")
+    if not (isinstance(stack_size, int) and stack_size >= 1):
+        raise ValueError(f"stack_size must be a positive integer, got {stack_size!r}")
+
+
+def _raise_on_overflow(overflow, stack_size):
+    if isinstance(overflow, jax.core.Tracer):
+        # Inside a caller's jit: raise when the computation runs.
+        jax.debug.callback(_overflow_callback, overflow, stack_size=stack_size)
+    elif bool(overflow):
+        _overflow_callback(True, stack_size=stack_size)
+
+
+def _overflow_callback(overflow, *, stack_size):
+    if bool(overflow):
+        raise StackOverflowError(
+            f"a traversal stack of {stack_size} entries overflowed; its rays' answers would "
+            f"be wrong. Pass a larger stack_size (e.g. {2 * stack_size}).")
+
+
+def _engine_query(structure, origins, directions, tmax, kernel, any_hit, counters, lanes,
+                  stack_size):
+    _check_options(lanes, stack_size)
+    traversal = TRAVERSALS[structure.kind](structure)
+    hits, count, overflow = engine.traverse(
+        traversal, structure.arrays, origins, directions, tmax, kernel=kernel,
+        any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters)
+    _raise_on_overflow(overflow, stack_size)
+    if count is not None:
+        count = Counters(steps=count[:, 0], tests=count[:, 1], leaves=count[:, 2])
+    return hits, count
 
 
 def closest_hit(
@@ -55,7 +99,11 @@ def closest_hit(
     directions: Float[Array, "n 3"],
     kernel: str = DEFAULT_KERNEL,
     tmax: Float[Array, " n"] | float | None = None,
-) -> Hits:
+    *,
+    counters: bool = False,
+    lanes: int = engine.DEFAULT_LANES,
+    stack_size: int = engine.DEFAULT_STACK_SIZE,
+) -> Hits | tuple[Hits, Counters]:
     """The closest hit of every ray with ``0 < t < tmax``.
 
     Args:
@@ -63,14 +111,25 @@ def closest_hit(
         origins, directions: float32 [N, 3]; directions of unit length.
         kernel: ``"watertight"`` (default), ``"moller_trumbore"`` or ``"plane_barycentric"``.
         tmax: float32 [N] or a scalar; ``None`` for no limit.
+        counters: also return :class:`jrt.Counters` (per-ray steps, triangle tests,
+            leaves); a static option: without it the compiled traversal counts nothing.
+        lanes, stack_size: the engine's persistent lanes and per-lane stack entries
+            (ignored by brute force). A stack overflow raises :class:`StackOverflowError`.
 
     Returns:
-        :class:`jrt.Hits` (t inf and triangle -1 for a miss). Ties: the smallest t, then
-        the lowest face index.
+        :class:`jrt.Hits` (t inf and triangle -1 for a miss), and the counters if asked.
+        Ties: the smallest t, then the lowest face index.
     """
     _check_structure(structure)
     get_kernel(kernel)
     origins, directions, tmax = _check_rays(origins, directions, tmax)
+    if structure.kind != "brute":
+        hits, count = _engine_query(structure, origins, directions, tmax, kernel, False,
+                                    counters, lanes, stack_size)
+        return (hits, count) if counters else hits
+    if counters:
+        raise ValueError("counters are available for the engine's structures, not brute "
+                         "force (which tests every triangle)")
     return brute.closest_hit(
         structure["triangles"], structure["triangle_ids"], origins, directions, tmax,
         kernel=kernel,
@@ -83,11 +142,26 @@ def occluded(
     directions: Float[Array, "n 3"],
     tmax: Float[Array, " n"] | float | None = None,
     kernel: str = DEFAULT_KERNEL,
-) -> Bool[Array, " n"]:
-    """bool [N]: is there any hit with ``0 < t < tmax``? Stops at the first one found."""
+    *,
+    counters: bool = False,
+    lanes: int = engine.DEFAULT_LANES,
+    stack_size: int = engine.DEFAULT_STACK_SIZE,
+) -> Bool[Array, " n"] | tuple[Bool[Array, " n"], Counters]:
+    """bool [N]: is there any hit with ``0 < t < tmax``? Stops at the first one found.
+
+    Options as :func:`closest_hit`.
+    """
     _check_structure(structure)
     get_kernel(kernel)
     origins, directions, tmax = _check_rays(origins, directions, tmax)
+    if structure.kind != "brute":
+        hits, count = _engine_query(structure, origins, directions, tmax, kernel, True,
+                                    counters, lanes, stack_size)
+        mask = hits.triangle >= 0
+        return (mask, count) if counters else mask
+    if counters:
+        raise ValueError("counters are available for the engine's structures, not brute "
+                         "force (which tests every triangle)")
     return brute.occluded(structure["triangles"], origins, directions, tmax, kernel=kernel)
 
 

@@ -1,4 +1,4 @@
-"""Every kernel's closest hits against Intel Embree's on the camel (brute force).
+"""Every kernel's closest hits against Intel Embree's on the camel (brute force and BVH).
 
 A ray disagrees when one side hits and the other misses, or when both hit but |Δt|
 exceeds 1e-4 of the scene size (float32 on grazing rays: Embree's own t is off by up to
@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import accel
 import jrt
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
@@ -49,15 +50,25 @@ def compare(ours: dict, ref: dict, scene_size: float) -> dict:
     }
 
 
+@pytest.fixture(scope="module")
+def camel_bvh(camel):
+    return accel.build("bvh", camel.vertices, camel.faces)
+
+
+@pytest.fixture(params=["brute", "bvh"])
+def structure(request):
+    return request.getfixturevalue({"brute": "camel_brute", "bvh": "camel_bvh"}[request.param])
+
+
 @pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
 @pytest.mark.parametrize("kernel", list(jrt.KERNELS))
-def test_closest_hits_match_embree(camel, camel_brute, ray_sets, embree_hits, kernel, ray_set):
+def test_closest_hits_match_embree(camel, structure, ray_sets, embree_hits, kernel, ray_set):
     origins, directions = ray_sets[ray_set]
     assert len(origins) >= RAYS
-    ours = as_numpy(jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
+    ours = as_numpy(jrt.closest_hit(structure, origins, directions, kernel=kernel))
     report = compare(ours, embree_hits[ray_set], camel.diagonal)
     disagree = report["only_ours"] + report["only_embree"] + report["t_apart"]
-    print(f"\n{kernel} / {ray_set}: {report} -> {disagree} disagree "
+    print(f"\n{structure.kind} / {kernel} / {ray_set}: {report} -> {disagree} disagree "
           f"({disagree / report['rays']:.2e}); 'other_triangle' counts ties on shared "
           "edges and vertices where both sides hit at the same t")
     assert report["hits"] > 0.1 * report["rays"]

@@ -1,0 +1,154 @@
+"""BVH on the camel: build, then closest hit and occlusion beside Embree, all cores for both.
+
+    python -m benchmarks.bvh [--rays 1000000] [--repeats 3] [--json out/bvh.json]
+
+- Build: the binned-SAH and object-median BVHs, median of ``--builds`` builds, with the
+  statistics of the structure.
+- Trace: camera rays (``jrt.raysets.camera_set``) and incoherent rays (origins on a
+  sphere, aimed at random points of the box). jrt's BVH on every XLA CPU device (one per
+  core, see ``jrt._xla``) against Embree (embreex, robust mode) with one Python thread per
+  core, in this same process; jrt's first call (compile and run) is reported apart, rates
+  are the best of ``--repeats`` warm calls. Brute force runs on a subset of
+  ``--brute-rays`` rays for the speed-up over it.
+- Occlusion: any-hit rays toward each ray's closest hit (half of them stopped short).
+
+Ratios to Embree are the figures to quote: absolute times drift on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import accel
+import jrt
+from benchmarks.peers import EmbreePeer
+from jrt.raysets import camera_set, incoherent_set
+
+
+def _best(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def _ready(x):
+    return jax.block_until_ready(x)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rays", type=int, default=1_000_000, help="rays per set")
+    parser.add_argument("--brute-rays", type=int, default=8192,
+                        help="rays of each set traced by brute force (default 8192)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--builds", type=int, default=5)
+    parser.add_argument("--kernel", default="watertight", choices=tuple(jrt.KERNELS))
+    parser.add_argument("--lanes", type=int, default=jrt.engine.DEFAULT_LANES)
+    parser.add_argument("--json", default="out/bvh.json")
+    args = parser.parse_args(argv)
+
+    mesh = jrt.load_mesh(jrt.camel_path())
+    cores = os.cpu_count() or 1
+    record = {
+        "mesh": mesh.summary(), "rays": args.rays, "kernel": args.kernel,
+        "machine": f"{platform.machine()} {platform.processor()}, {cores} cores",
+        "devices": [str(d) for d in jax.devices()], "jax": jax.__version__,
+        "builds": {}, "trace": [],
+    }
+    print(record["mesh"], "|", len(jax.devices()), "XLA devices |", cores, "cores")
+
+    structures = {}
+    for method in ("sah", "median"):
+        times = []
+        for _ in range(args.builds):
+            s = accel.build("bvh", mesh.vertices, mesh.faces, method=method)
+            times.append(s.stats["build_seconds"])
+        structures[method] = s
+        record["builds"][method] = {"seconds_median": statistics.median(times),
+                                    "seconds": times, **s.stats}
+        st = s.stats
+        print(f"build {method:<6} median {statistics.median(times):.3f} s "
+              f"(min {min(times):.3f}, max {max(times):.3f}); nodes {st['nodes']:,}, "
+              f"leaves {st['leaves']:,}, depth {st['depth']}, "
+              f"tris/leaf {st['triangles_per_leaf_mean']:.2f} "
+              f"(max {st['triangles_per_leaf_max']}), SAH {st['sah_cost']:.2f}, "
+              f"{st['bytes'] / 2**20:.1f} MiB")
+
+    bvh = structures["sah"]
+    brute = accel.build("brute", mesh.vertices, mesh.faces)
+    embree = EmbreePeer(mesh.vertices, mesh.faces)
+    sets = {"camera": camera_set(mesh.vertices, args.rays),
+            "incoherent": incoherent_set(mesh.vertices, args.rays, seed=0)}
+    print(f"{'set':<11} {'query':<9} {'method':<18} {'Mrays/s':>9} {'x Embree':>9} notes")
+    for name, (o, d) in sets.items():
+        o, d = o[: args.rays], d[: args.rays]
+        n = len(o)
+        oj, dj = jax.device_put(o), jax.device_put(d)
+
+        def jrt_closest(s=bvh, oj=oj, dj=dj):
+            return _ready(jrt.closest_hit(s, oj, dj, kernel=args.kernel, lanes=args.lanes))
+
+        start = time.perf_counter()
+        hits = jrt_closest()
+        first = time.perf_counter() - start
+        t_jrt = _best(jrt_closest, args.repeats)
+        t_emb = _best(lambda o=o, d=d: embree.closest_hit(o, d, threads=cores), args.repeats)
+        ob, db = oj[: args.brute_rays], dj[: args.brute_rays]
+        brute_run = lambda ob=ob, db=db: _ready(  # noqa: E731
+            jrt.closest_hit(brute, ob, db, kernel=args.kernel))
+        brute_run()
+        t_brute = _best(brute_run, 1) * n / len(ob)
+        _, counts = jrt.closest_hit(bvh, oj, dj, kernel=args.kernel, lanes=args.lanes,
+                                    counters=True)
+        counts = {k: float(np.asarray(v).mean()) for k, v in counts._asdict().items()}
+        rows = [
+            ("closest", "embree", t_emb, ""),
+            ("closest", "jrt bvh", t_jrt,
+             f"first call {first:.1f} s; {t_brute / t_jrt:,.0f}x brute force; "
+             f"steps {counts['steps']:.1f}, tests {counts['tests']:.1f}, "
+             f"leaves {counts['leaves']:.1f} per ray"),
+            ("closest", "jrt brute (est.)", t_brute, f"from {len(ob):,} rays"),
+        ]
+        # Occlusion toward the closest hit: half the rays stop short of it.
+        t_hit = np.asarray(hits.t)
+        rng = np.random.default_rng(1)
+        tmax = np.where(np.isfinite(t_hit), t_hit * rng.choice([0.5, 1.5], n), 10.0)
+        tmax = tmax.astype(np.float32)
+        tj = jax.device_put(tmax)
+        occ_run = lambda oj=oj, dj=dj, tj=tj: _ready(  # noqa: E731
+            jrt.occluded(bvh, oj, dj, tj, kernel=args.kernel, lanes=args.lanes))
+        occ_run()
+        t_occ = _best(occ_run, args.repeats)
+        t_emb_occ = _best(lambda o=o, d=d, tm=tmax: embree.occluded(o, d, tm, threads=cores),
+                          args.repeats)
+        rows += [("occluded", "embree", t_emb_occ, ""), ("occluded", "jrt bvh", t_occ, "")]
+        for query, method, seconds, notes in rows:
+            ref = t_emb if query == "closest" else t_emb_occ
+            rate = n / seconds / 1e6
+            record["trace"].append({
+                "set": name, "query": query, "method": method, "rays": n,
+                "seconds": seconds, "mrays_per_s": rate, "ratio_to_embree": ref / seconds,
+                "notes": notes, **({"counters": counts, "first_call_seconds": first}
+                                   if method == "jrt bvh" and query == "closest" else {})})
+            print(f"{name:<11} {query:<9} {method:<18} {rate:9.3f} {ref / seconds:9.3f} {notes}")
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(record, indent=2))
+    print(f"-> {out}")
+    return record
+
+
+if __name__ == "__main__":
+    main()

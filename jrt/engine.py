@@ -1,0 +1,402 @@
+"""The traversal engine every acceleration structure runs on.
+
+The engine owns what all structures share: the lanes, the stack, the leaf loop, the hit
+record, the counters and the overflow flag. A structure contributes a :class:`Traversal`:
+how a lane starts (``start``) and one step from node to node (``step``), which may name a
+leaf (a range of triangle rows to test), push one stack entry or pop one.
+
+**Persistent lanes with refill** (Aila & Laine, "Understanding the efficiency of ray
+traversal on GPUs", HPG 2009). A batched per-ray loop runs until its slowest ray ends;
+here a fixed set of ``lanes`` (a few thousand) each hold one ray, and every iteration of
+one ``lax.while_loop`` advances every lane by one triangle test (if its current leaf has
+rows left) and one traversal step (if it has none). A lane whose ray is finished writes
+the hit to the output and takes the next ray, so lanes stay busy until the rays run out.
+
+**The stack** is [lanes, stack_size, width] int32 (a structure chooses what an entry
+holds; floats travel as their bit pattern). Each iteration writes the step's entry at the
+stack pointer unconditionally (a slot above the top is free, so a lane that does not push
+writes garbage nobody reads) and then reads the new top: one scatter and one gather, no
+copy of the stack. A push onto a full stack sets the overflow flag, which leaves jit with
+the hits; the public functions raise :class:`StackOverflowError` (never a silent miss).
+
+**Counters** (steps, triangle tests, leaves per ray) are a static option: without them
+the compiled loop carries none.
+
+**Tie rule** (shared with brute force, ``jrt.hits.prefer``): the smallest ``t``; among
+hits tied within 2^-20 of ``t``, the lowest face index. Every leaf row is tested with the
+same kernel as brute force, and the winner's t, u, v are evaluated once after the loop
+(``jrt.hits.winner_hits``), so a structure whose box tests are conservative returns
+brute force's hits bit for bit.
+
+**Devices**: on XLA:CPU a while loop runs on one thread, so the rays are split over the
+host's CPU devices (``jrt`` asks XLA for one per core, see ``jrt._xla``) with
+``shard_map``, each device running its own lanes on its share.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.sharding import Mesh, PartitionSpec
+
+from jrt.hits import Hits, prefer, tie_window, winner_hits
+from jrt.kernels import get_kernel
+
+DEFAULT_LANES = 2048
+DEFAULT_STACK_SIZE = 64
+DEFAULT_STEPS_PER_ITERATION = 1
+_NO_RAY = np.iinfo(np.int32).max
+
+
+class StackOverflowError(RuntimeError):
+    """A lane pushed onto a full traversal stack; its ray's answer would be wrong."""
+
+
+class Ray(NamedTuple):
+    """One lane's ray, with what every step reuses."""
+
+    origin: jax.Array  # [L, 3], for the triangle kernels
+    direction: jax.Array  # [L, 3]
+    origin_axes: tuple  # three [L], the origin by axis, for the box tests
+    inv_direction: tuple  # three [L], 1/d by axis (±inf for a zero component)
+    tmax: jax.Array  # [L]
+
+
+class Step(NamedTuple):
+    """What one traversal step of a lane decides.
+
+    Attributes:
+        state: the lane's traversal state after the step (a pytree of [L] arrays).
+        leaf_first, leaf_count: int32 [L], rows of the leaf to test next (count 0: none).
+        push: bool [L], push ``entry`` onto the stack.
+        entry: int32 [L, width], the entry to push.
+        pop: bool [L], the step consumed the top entry (given to it as ``top``).
+        finished: bool [L], the lane's traversal is over (no node left to visit).
+    """
+
+    state: Any
+    leaf_first: jax.Array
+    leaf_count: jax.Array
+    push: jax.Array
+    entry: jax.Array
+    pop: jax.Array
+    finished: jax.Array
+
+
+class Traversal(NamedTuple):
+    """A structure's part of the traversal: a pair of pure functions (as jax-md's pairs).
+
+    ``start(arrays, ray) -> state`` gives a fresh lane's state;
+    ``step(arrays, ray, state, best_t, top, has_top) -> Step`` advances a lane by one node,
+    culling what lies beyond ``best_t``; ``top`` [L, width] is the stack's top entry and
+    ``has_top`` whether the stack holds any. ``stack_width`` is the entry's int32 count.
+    """
+
+    start: Callable[..., Any]
+    step: Callable[..., Step]
+    stack_width: int
+
+
+class Counters(NamedTuple):
+    """Per-ray work, int32 [N] each: traversal steps, triangle tests, leaves visited."""
+
+    steps: jax.Array
+    tests: jax.Array
+    leaves: jax.Array
+
+
+def _inverse(d):
+    # A zero component gives ±inf (its sign kept from ±0.0); slab tests handle it.
+    return 1.0 / d
+
+
+def _load_rays(rays, ids, n):
+    """The rays ``ids`` from the packed [n, 7] array; ids >= n give a dummy ray."""
+    r = rays[jnp.minimum(ids, n - 1)]
+    o, d, tm = r[:, 0:3], r[:, 3:6], r[:, 6]
+    # Box tests run on [L] vectors, one per axis: XLA:CPU vectorises elementwise code
+    # along the lanes only when no small trailing axis (of 3) is broadcast.
+    inv = _inverse(d)
+    return Ray(o, d, tuple(o[:, k] for k in range(3)), tuple(inv[:, k] for k in range(3)),
+               jnp.where(ids < n, tm, -jnp.inf))
+
+
+def _select(mask, new, old):
+    return jax.tree.map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
+def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, stack_size,
+               counters, references, steps_per_iteration):
+    """All rays of ``rays`` [n, 7] (origin, direction, tmax) through one device's lanes."""
+    fn = get_kernel(kernel)
+    n = rays.shape[0]
+    lanes = max(1, min(lanes, n))
+    width = traversal.stack_width
+    triangles = arrays["triangles"]
+    triangle_ids = arrays["triangle_ids"]
+    lane_index = jnp.arange(lanes, dtype=jnp.int32)
+
+    def fresh(ids):
+        ray = _load_rays(rays, ids, n)
+        return ray, traversal.start(arrays, ray)
+
+    ids0 = lane_index
+    ray0, tstate0 = fresh(ids0)
+    zeros_i = jnp.zeros(lanes, jnp.int32)
+    state = {
+        "ray_id": ids0,
+        "ray": ray0,
+        "trav": tstate0,
+        "trav_done": jnp.zeros(lanes, bool),
+        "cursor": zeros_i,
+        "end": zeros_i,
+        "best_t": ray0.tmax,
+        "best_id": jnp.full(lanes, -1, jnp.int32),
+        "best_row": jnp.full(lanes, -1, jnp.int32),
+        "sp": zeros_i,
+        "stack": jnp.zeros((lanes, stack_size, width), jnp.int32),
+        "top": jnp.zeros((lanes, width), jnp.int32),
+        "next_ray": jnp.int32(lanes),
+        "overflow": jnp.zeros((), bool),
+        # The winning row of every ray (-1: none yet or a miss).
+        "out": jnp.full(n + lanes, -1, jnp.int32),
+    }
+    if counters:
+        state["count"] = jnp.zeros((lanes, 3), jnp.int32)
+        state["out_count"] = jnp.zeros((n + lanes, 3), jnp.int32)
+
+    def cond(s):
+        return jnp.any(s["ray_id"] < n)
+
+    def test_phase(s):
+        """The leaf loop: one triangle test for every lane that has rows left."""
+        ray = s["ray"]
+        testing = (s["ray_id"] < n) & (s["cursor"] < s["end"])
+        slot = jnp.where(testing, s["cursor"], 0)
+        row = references[slot] if references is not None else slot
+        tri = triangles[row]
+        face = triangle_ids[row]
+        t, _, _ = fn(ray.origin, ray.direction, tri[:, 0], tri[:, 1], tri[:, 2])
+        best_t, best_id = s["best_t"], s["best_id"]
+        better = testing & (t < ray.tmax) & prefer(t, face, best_t, best_id)
+        new = dict(s, best_t=jnp.where(better, t, best_t),
+                   best_id=jnp.where(better, face, best_id),
+                   best_row=jnp.where(better, row, s["best_row"]),
+                   cursor=s["cursor"] + testing.astype(jnp.int32))
+        if counters:
+            zero = jnp.zeros_like(testing)
+            new["count"] = s["count"] + jnp.stack([zero, testing, zero], 1).astype(jnp.int32)
+        return new
+
+    def step_phase(s):
+        """One traversal step for every lane whose leaf is done."""
+        stepping = _can_step(s)
+        sp = s["sp"]
+        has_top = sp > 0
+        # Cull only beyond the tie window: a tied hit with a lower face index may lie there.
+        cull_t = s["best_t"] + tie_window(s["best_t"])
+        st = traversal.step(arrays, s["ray"], s["trav"], cull_t, s["top"], has_top)
+        new_leaf = stepping & (st.leaf_count > 0)
+        push = stepping & st.push
+        pop = stepping & st.pop
+        new = dict(
+            s,
+            trav=_select(stepping, st.state, s["trav"]),
+            trav_done=s["trav_done"] | (stepping & (st.finished | (st.pop & ~has_top))),
+            cursor=jnp.where(new_leaf, st.leaf_first, s["cursor"]),
+            end=jnp.where(new_leaf, st.leaf_first + st.leaf_count, s["end"]),
+            overflow=s["overflow"] | jnp.any(push & (sp >= stack_size)),
+            sp=jnp.clip(sp + push.astype(jnp.int32) - pop.astype(jnp.int32), 0, stack_size),
+            entry=st.entry)
+        if counters:
+            new["count"] = s["count"] + jnp.stack(
+                [stepping, jnp.zeros_like(stepping), new_leaf], axis=1).astype(jnp.int32)
+        return new
+
+    def refill_phase(s):
+        """Finished lanes write their winner and take the next rays, in order."""
+        finished = _finished(s)
+        new = dict(s)
+        # Lanes with nothing to write aim at their own slot past the end (unique indices).
+        new["target"] = jnp.where(finished, s["ray_id"], n + lane_index)
+        new["result"] = s["best_row"]
+        if counters:
+            new["result_count"] = s["count"]
+        rank = jnp.cumsum(finished.astype(jnp.int32)) - 1
+        next_id = jnp.where(finished, s["next_ray"] + rank, s["ray_id"])
+        next_id = jnp.where(finished & (next_id >= n), _NO_RAY, next_id)
+        new["next_ray"] = s["next_ray"] + jnp.sum(finished.astype(jnp.int32))
+        fresh_ray, fresh_trav = fresh(next_id)
+        reset = {
+            "ray_id": next_id,
+            "ray": fresh_ray,
+            "trav": fresh_trav,
+            "trav_done": jnp.zeros(lanes, bool),
+            "cursor": zeros_i,
+            "end": zeros_i,
+            "best_t": fresh_ray.tmax,
+            "best_id": jnp.full(lanes, -1, jnp.int32),
+            "best_row": jnp.full(lanes, -1, jnp.int32),
+            "sp": zeros_i,
+        }
+        if counters:
+            reset["count"] = jnp.zeros((lanes, 3), jnp.int32)
+        for key, value in reset.items():
+            new[key] = _select(finished, value, new[key])
+        return new
+
+    def _can_step(s):
+        can = (s["ray_id"] < n) & (s["cursor"] >= s["end"]) & ~s["trav_done"]
+        if any_hit:
+            can &= s["best_id"] < 0
+        return can
+
+    def _finished(s):
+        active = s["ray_id"] < n
+        done = active & s["trav_done"] & (s["cursor"] >= s["end"])
+        if any_hit:
+            done |= active & (s["best_id"] >= 0)
+        return done
+
+    big = ("stack", "out", "out_count")
+
+    def step_and_stack(s):
+        small = {k: v for k, v in s.items() if k not in big}
+        sp_before = s["sp"]
+        small = step_phase(small)
+        # The push goes to the slot at the old pointer (free unless the step pushed), then
+        # the new top is read: writing before reading spares XLA a copy of the stack.
+        stack = s["stack"].at[lane_index, jnp.minimum(sp_before, stack_size - 1)].set(
+            small.pop("entry"), unique_indices=True, indices_are_sorted=True)
+        new = dict(s, **small, stack=stack)
+        new["top"] = stack[lane_index, jnp.maximum(new["sp"] - 1, 0)]
+        return new
+
+    def body(s):
+        # ``steps_per_iteration`` traversal steps for lanes whose leaf is done, then one
+        # triangle test for lanes with leaf rows left, then the refill of finished lanes.
+        # Lanes step far more often than they test (5-15 steps per ray on the camel
+        # against 0.5-1.6 tests), and every phase costs all lanes, so tests (and refills)
+        # run less often than steps.
+        for _ in range(steps_per_iteration):
+            s = step_and_stack(s)
+        small = {k: v for k, v in s.items() if k not in big}
+        small = refill_phase(test_phase(small))
+        target = small.pop("target")
+        result = small.pop("result")
+        new = dict(s, **small)
+        new["out"] = s["out"].at[target].set(result, unique_indices=True)
+        if counters:
+            new["out_count"] = s["out_count"].at[target].set(small.pop("result_count"),
+                                                             unique_indices=True)
+            new.pop("result_count")
+        return new
+
+    s = lax.while_loop(cond, body, state)
+    hits = winner_hits(fn, rays[:, 0:3], rays[:, 3:6], triangles, triangle_ids, s["out"][:n])
+    count = s["out_count"][:n] if counters else None
+    return hits, count, s["overflow"]
+
+
+def cpu_devices() -> list:
+    """The devices the rays are split over: all local devices of the default backend."""
+    return list(jax.local_devices())
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices",
+    "steps_per_iteration"))
+def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, lanes,
+              stack_size, counters, devices, steps_per_iteration):
+    n = origins.shape[0]
+    rays = jnp.concatenate([origins, directions, tmax[:, None]], axis=1)
+    if arrays["triangles"].shape[0] == 0:
+        # No triangle at all (an empty or all-degenerate mesh): one zero triangle, which
+        # no kernel ever hits, keeps the leaf loop's gathers in range.
+        arrays = dict(arrays, triangles=jnp.zeros((1, 3, 3), jnp.float32),
+                      triangle_ids=jnp.full((1,), -1, jnp.int32))
+    references = arrays.get("references")
+    run = functools.partial(
+        _run_lanes, traversal, kernel=kernel, any_hit=any_hit, lanes=lanes,
+        stack_size=stack_size, counters=counters, references=references,
+        steps_per_iteration=steps_per_iteration)
+    if devices is None or len(devices) == 1 or n < 2 * len(devices):
+        hits, count, overflow = run(arrays, rays)
+        return hits, count, overflow
+    k = len(devices)
+    per = -(-n // k)
+    pad = per * k - n
+    # Padding rays have tmax -inf: they test nothing and are cut off below.
+    filler = jnp.tile(jnp.asarray([[0, 0, 0, 0, 0, 1, -jnp.inf]], rays.dtype), (pad, 1))
+    rays = jnp.concatenate([rays, filler]).reshape(k, per, 7)
+    mesh = Mesh(np.asarray(devices), ("rays",))
+
+    def shard(arrays, rays):
+        hits, count, overflow = run(arrays, rays[0])
+        hits = jax.tree.map(lambda a: a[None], hits)
+        count = None if count is None else count[None]
+        return hits, count, overflow[None]
+
+    rep = jax.tree.map(lambda _: PartitionSpec(), arrays)
+    hits, count, overflow = jax.shard_map(
+        shard, mesh=mesh, in_specs=(rep, PartitionSpec("rays")),
+        out_specs=PartitionSpec("rays"), check_vma=False)(arrays, rays)
+    hits = jax.tree.map(lambda a: a.reshape((k * per,) + a.shape[2:])[:n], hits)
+    count = None if count is None else count.reshape(k * per, 3)[:n]
+    return hits, count, jnp.any(overflow)
+
+
+def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel: str,
+             any_hit: bool, lanes: int = DEFAULT_LANES, stack_size: int = DEFAULT_STACK_SIZE,
+             counters: bool = False, devices=None,
+             steps_per_iteration: int = DEFAULT_STEPS_PER_ITERATION):
+    """Runs every ray through ``traversal``: (hits, counters or None, overflow flag)."""
+    if origins.shape[0] == 0:
+        empty = Hits(jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.int32),
+                     jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.float32))
+        return empty, (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.zeros((), bool)
+    devs = tuple(devices) if devices is not None else tuple(cpu_devices())
+    return _traverse(arrays, origins, directions, tmax, traversal=traversal, kernel=kernel,
+                     any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters,
+                     devices=devs, steps_per_iteration=steps_per_iteration)
+
+
+#: Relative widening of every box test. Ize ("Robust BVH ray traversal", JCGT 2013)
+#: shows ``tfar * (1 + 2 gamma_3)`` (about 4 ulps) makes a float32 slab test conservative.
+#: The margin here is wider, in space as well as in t: each box grows by 2^-16 of the
+#: magnitude of its corners and of the ray's origin, and the interval by 2^-16 of t, so
+#: that it also absorbs the rounding of the triangle kernels, whose hit point (the
+#: textbook kernel computes it as O + tD) may stray from the triangle by a few ulps of
+#: those magnitudes. A box is never culled while a kernel could still report a hit in it,
+#: which keeps every structure's hits equal to brute force's.
+BOX_MARGIN = 2.0**-16
+
+
+def box_interval(ray: Ray, lo, hi):
+    """Entry and exit distances (tnear, tfar) [L] of each lane's ray through its box.
+
+    ``lo``, ``hi``: the box corners by axis, sequences of three [L] arrays. Kay & Kajiya
+    1986 slabs with Williams et al. 2005's inverse direction. A zero direction component
+    gives ±inf and, for an origin exactly on that slab's face, 0 * inf = NaN: that axis
+    then puts no bound (the ray lies in the face, which belongs to the closed box). The
+    box and the interval are widened by :data:`BOX_MARGIN`; tnear is at least 0.
+    """
+    near, far = [], []
+    for axis in range(3):
+        o, inv = ray.origin_axes[axis], ray.inv_direction[axis]
+        size = jnp.abs(o)
+        t0 = (lo[axis] - BOX_MARGIN * (jnp.abs(lo[axis]) + size) - o) * inv
+        t1 = (hi[axis] + BOX_MARGIN * (jnp.abs(hi[axis]) + size) - o) * inv
+        lo_t, hi_t = jnp.minimum(t0, t1), jnp.maximum(t0, t1)
+        near.append(jnp.where(lo_t == lo_t, lo_t, -jnp.inf))
+        far.append(jnp.where(hi_t == hi_t, hi_t, jnp.inf))
+    tnear = jnp.maximum(jnp.maximum(near[0], near[1]), jnp.maximum(near[2], 0.0))
+    tfar = jnp.minimum(jnp.minimum(far[0], far[1]), far[2])
+    return tnear * (1 - BOX_MARGIN), tfar * (1 + BOX_MARGIN)

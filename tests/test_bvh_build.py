@@ -1,0 +1,474 @@
+"""The BVH builder (``accel.build("bvh", ...)``): the arrays against their documented layout.
+
+Everything here is recomputed from the arrays alone (the layout in ``accel/bvh.py``'s
+docstring) and compared with what the builder reports in ``stats``:
+
+- the node rows decode to a tree: row 0 the root, every other interior row referenced
+  exactly once and only by an earlier row (breadth-first, so no cycle), every triangle row
+  in exactly one leaf;
+- every child box is the exact float32 bound of the triangles of its subtree;
+- ``triangle_ids`` is a permutation of the non-degenerate faces and ``triangles`` holds
+  their corners;
+- the counts, depth, leaf sizes, SAH cost and bytes of ``stats``.
+
+Speed and scaling are measured by the benchmarks, never by timed tests.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import accel
+import jrt
+from jrt.trace import as_numpy
+
+STAT_KEYS = {
+    "build_seconds", "method", "bins", "max_leaf_size", "triangles", "degenerate_skipped",
+    "nodes", "interior_nodes", "leaves", "depth", "triangles_per_leaf_mean",
+    "triangles_per_leaf_max", "leaves_over_max_depth", "sah_cost", "bytes",
+}
+DEFAULTS = {"method": "sah", "bins": 16, "max_leaf_size": 4, "traversal_cost": 0.5,
+            "intersection_cost": 1.0}
+PROPERTY = settings(max_examples=100, deadline=None, database=None)
+
+
+# ---------------------------------------------------------------------------------------------
+# An independent decoder of the layout
+# ---------------------------------------------------------------------------------------------
+
+
+def expected_ids(vertices, faces) -> np.ndarray:
+    """Faces of non-zero area, from the float32 corners evaluated in float64."""
+    corners = np.asarray(vertices, np.float32)[np.asarray(faces)].astype(np.float64)
+    if len(corners) == 0:
+        return np.zeros(0, np.int64)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return np.flatnonzero(np.any(normal != 0, axis=1))
+
+
+def half_area(lo, hi) -> np.ndarray:
+    """Half the surface area of boxes [..., 3], in float64."""
+    e = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
+    return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
+
+
+def decode(structure) -> dict:
+    """Decode the node rows into a tree, asserting its shape on the way.
+
+    Returns per (row, slot) of every child reference: ``is_node`` (an interior row) and the
+    subtree's bounds and triangle count computed from the triangles; per leaf: first row,
+    count, depth, row and slot; ``parent`` [M, 2] (row, slot) of every row but the root.
+    """
+    nodes = np.asarray(structure["nodes"])
+    triangles = np.asarray(structure["triangles"])
+    leaf_bits = structure.layout_value("leaf_bits")
+    assert nodes.dtype == np.float32 and nodes.ndim == 2 and nodes.shape[1] == 16
+    assert nodes.shape[0] >= 1
+    np.testing.assert_array_equal(nodes[:, 14:16], 0)  # padding
+    refs = np.ascontiguousarray(nodes).view(np.int32)[:, 12:14].astype(np.int64)
+    m, t_count = nodes.shape[0], triangles.shape[0]
+
+    # Interior references: every row but the root referenced exactly once, by an earlier
+    # row (breadth first), hence reachable from the root and without cycles.
+    is_node = refs >= 0
+    parent_row, parent_slot = np.nonzero(is_node)
+    child = refs[is_node]
+    assert np.all((parent_row < child) & (child < m)), "a reference to an earlier row"
+    np.testing.assert_array_equal(np.bincount(child, minlength=m), [0] + [1] * (m - 1))
+    parent = np.zeros((m, 2), np.int64)
+    parent[child] = np.stack([parent_row, parent_slot], axis=1)
+    depth = np.zeros(m, np.int64)
+    for _ in range(m):  # at most the tree's depth rounds
+        new = depth.copy()
+        new[child] = depth[parent_row] + 1
+        if np.array_equal(new, depth):
+            break
+        depth = new
+
+    # Leaves: every triangle row in exactly one of them.
+    leaf_row, leaf_slot = np.nonzero(~is_node)
+    code = ~refs[~is_node]
+    first, count = code >> leaf_bits, code & ((1 << leaf_bits) - 1)
+    assert np.all((first >= 0) & (first + count <= t_count))
+    cover = np.zeros(t_count + 1, np.int64)
+    np.add.at(cover, first, 1)
+    np.add.at(cover, first + count, -1)
+    np.testing.assert_array_equal(np.cumsum(cover)[:t_count], 1)
+
+    # Subtree bounds and counts from the triangles, deepest rows first.
+    lo = np.full((m, 2, 3), np.inf, np.float32)
+    hi = np.full((m, 2, 3), -np.inf, np.float32)
+    below = np.zeros((m, 2), np.int64)
+    full = count > 0
+    if full.any():
+        order = np.argsort(first[full])  # non-empty leaves tile the rows in this order
+        starts = first[full][order]
+        rows, slots = leaf_row[full][order], leaf_slot[full][order]
+        lo[rows, slots] = np.minimum.reduceat(triangles.min(axis=1), starts)
+        hi[rows, slots] = np.maximum.reduceat(triangles.max(axis=1), starts)
+    below[leaf_row, leaf_slot] = count
+    for d in range(int(depth.max()), 0, -1):
+        rows = np.flatnonzero(depth == d)
+        p, ps = parent[rows, 0], parent[rows, 1]
+        lo[p, ps] = lo[rows].min(axis=1)
+        hi[p, ps] = hi[rows].max(axis=1)
+        below[p, ps] = below[rows].sum(axis=1)
+    return {"refs": refs, "is_node": is_node, "boxes": nodes[:, :12].reshape(-1, 2, 2, 3),
+            "lo": lo, "hi": hi, "below": below, "parent": parent, "leaf_bits": leaf_bits,
+            "leaf_first": first, "leaf_count": count, "leaf_depth": depth[leaf_row] + 1,
+            "leaf_row": leaf_row, "leaf_slot": leaf_slot}
+
+
+def check_bvh(structure, vertices, faces, **params):
+    """Every documented property of a build, recomputed from its arrays."""
+    params = {**DEFAULTS, **params}
+    vertices = np.asarray(vertices, np.float32)
+    faces = np.asarray(faces)
+    assert structure.kind == "bvh"
+    assert set(structure.arrays) == {"nodes", "triangles", "triangle_ids"}
+    stats = structure.stats
+    assert set(stats) == STAT_KEYS
+    nodes, triangles, ids = (np.asarray(structure[k]) for k in
+                             ("nodes", "triangles", "triangle_ids"))
+    assert triangles.dtype == np.float32 and ids.dtype == np.int32
+
+    # The triangles: a permutation of the non-degenerate faces, with their corners.
+    keep = expected_ids(vertices, faces)
+    t_count = len(keep)
+    assert triangles.shape == (t_count, 3, 3) and ids.shape == (t_count,)
+    np.testing.assert_array_equal(np.sort(ids), keep)
+    np.testing.assert_array_equal(triangles, vertices[faces[ids]].reshape(-1, 3, 3))
+    assert stats["triangles"] == t_count == structure.num_triangles
+    assert stats["degenerate_skipped"] == len(faces) - t_count
+
+    tree = decode(structure)
+    counts, boxes = tree["leaf_count"], tree["boxes"]
+    # A mesh that is one leaf: one row, child 0 the leaf, child 1 an empty leaf.
+    root_is_leaf = nodes.shape[0] == 1 and int(tree["refs"][0, 1]) == ~0
+    if root_is_leaf:
+        assert int(tree["refs"][0, 0]) < 0
+        assert t_count <= params["max_leaf_size"]
+        np.testing.assert_array_equal(boxes[0, 1], 0)
+        np.testing.assert_array_equal(counts, [t_count, 0])
+        interior, n_leaves, depth = 0, 1, 0
+        real = counts[:1]
+    else:
+        assert (counts >= 1).all(), "an empty leaf in a tree with interior nodes"
+        interior, n_leaves = nodes.shape[0], len(counts)
+        depth = int(tree["leaf_depth"].max())
+        real = counts
+    assert n_leaves == interior + 1
+    assert stats["interior_nodes"] == interior
+    assert stats["leaves"] == n_leaves
+    assert stats["nodes"] == interior + n_leaves
+    assert stats["depth"] == depth
+    assert stats["triangles_per_leaf_max"] == int(real.max())
+    assert stats["triangles_per_leaf_mean"] == pytest.approx(t_count / n_leaves, rel=1e-12)
+    assert int(real.max()) < 2 ** tree["leaf_bits"]
+    if stats["leaves_over_max_depth"] == 0:
+        assert (real <= params["max_leaf_size"]).all()
+    else:
+        assert depth >= 64  # only the depth limit may leave a bigger leaf
+
+    # Boxes: the exact float32 bounds of the subtree's triangles (an empty leaf: zeros).
+    empty = tree["below"] == 0
+    np.testing.assert_array_equal(boxes[empty], 0)
+    np.testing.assert_array_equal(boxes[~empty][:, 0], tree["lo"][~empty])
+    np.testing.assert_array_equal(boxes[~empty][:, 1], tree["hi"][~empty])
+
+    # The object median halves every interior node (the smaller half on the left).
+    if params["method"] == "median" and not root_is_leaf:
+        left, right = tree["below"][:, 0], tree["below"][:, 1]
+        assert np.all((right - left == 0) | (right - left == 1))
+
+    # SAH cost of the tree (C_T per interior node, C_I per triangle, by area over the root's).
+    ct, ci = params["traversal_cost"], params["intersection_cost"]
+    if t_count:
+        root_area = half_area(boxes[0, :, 0].min(axis=0), boxes[0, :, 1].max(axis=0))
+        if root_is_leaf:
+            root_area = half_area(*boxes[0, 0])
+        assert root_area > 0
+        areas = half_area(boxes[..., 0, :], boxes[..., 1, :])
+        cost = ct * (areas[tree["is_node"]].sum() + root_area * (not root_is_leaf))
+        cost += ci * (areas[tree["leaf_row"], tree["leaf_slot"]] * counts).sum()
+        assert stats["sah_cost"] == pytest.approx(cost / root_area, rel=1e-9)
+    else:
+        assert stats["sah_cost"] == 0
+
+    assert stats["method"] == params["method"]
+    assert stats["bins"] == params["bins"]
+    assert stats["max_leaf_size"] == params["max_leaf_size"]
+    assert stats["build_seconds"] >= 0
+    assert stats["bytes"] == nodes.nbytes + triangles.nbytes + ids.nbytes == structure.nbytes
+    return tree
+
+
+# ---------------------------------------------------------------------------------------------
+# The camel
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def camel_builds(camel):
+    return {method: accel.build("bvh", camel.vertices, camel.faces, method=method)
+            for method in ("sah", "median")}
+
+
+@pytest.mark.parametrize("method", ["sah", "median"])
+def test_camel_build_is_consistent(camel, camel_builds, method):
+    structure = camel_builds[method]
+    check_bvh(structure, camel.vertices, camel.faces, method=method)
+    assert structure.stats["leaves_over_max_depth"] == 0
+    assert structure.stats["triangles"] == len(camel.faces) - len(camel.degenerate)
+
+
+def test_camel_median_costs_more_than_sah(camel_builds):
+    sah, median = (camel_builds[m].stats["sah_cost"] for m in ("sah", "median"))
+    print(f"\nSAH cost of the camel: sah {sah:.3f}, median {median:.3f}")
+    assert median > sah
+
+
+def test_camel_build_is_deterministic(camel, camel_builds):
+    again = accel.build("bvh", camel.vertices, camel.faces, method="median")
+    for name, array in camel_builds["median"].arrays.items():
+        np.testing.assert_array_equal(again[name], array)
+
+
+# ---------------------------------------------------------------------------------------------
+# Random soups
+# ---------------------------------------------------------------------------------------------
+
+
+def random_mesh(seed, n, *, grid, shared, degenerate, duplicates):
+    """A soup of n triangles (or an indexed mesh over a shared vertex pool).
+
+    ``grid``: coordinates on a coarse grid (many exactly shared coordinates, axis-aligned
+    flat and collinear triangles); ``degenerate``/``duplicates``: shares of faces made
+    degenerate (repeated corner) or copied from another face.
+    """
+    rng = np.random.default_rng(seed)
+    if grid:
+        points = rng.integers(-4, 5, size=(3 * n, 3)) * 0.5
+    else:
+        centres = rng.uniform(-10, 10, size=(n, 1, 3))
+        sizes = 10.0 ** rng.uniform(-3, 0.5, size=(n, 1, 1))
+        points = (centres + sizes * rng.normal(size=(n, 3, 3))).reshape(-1, 3)
+    vertices = points.astype(np.float32)
+    if shared:
+        faces = rng.integers(0, len(vertices), size=(n, 3))
+    else:
+        faces = np.arange(3 * n).reshape(n, 3)
+    pick = rng.random(n)
+    faces[pick < degenerate, 2] = faces[pick < degenerate, 0]
+    dup = rng.random(n) < duplicates
+    faces[dup] = faces[rng.integers(0, n, size=n)][dup]
+    return vertices, faces.astype(np.int32)
+
+
+@PROPERTY
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 200),
+    grid=st.booleans(),
+    shared=st.booleans(),
+    degenerate=st.sampled_from([0.0, 0.1, 0.5]),
+    duplicates=st.sampled_from([0.0, 0.2, 0.9]),
+    method=st.sampled_from(["sah", "median"]),
+    bins=st.sampled_from([2, 3, 16, 256]),
+    max_leaf_size=st.sampled_from([1, 2, 4, 7, 255]),
+    traversal_cost=st.sampled_from([0.01, 0.5, 8.0]),
+    intersection_cost=st.sampled_from([0.25, 1.0]),
+)
+def test_random_soup_build_is_consistent(seed, n, grid, shared, degenerate, duplicates,
+                                         **params):
+    vertices, faces = random_mesh(seed, n, grid=grid, shared=shared, degenerate=degenerate,
+                                  duplicates=duplicates)
+    structure = accel.build("bvh", vertices, faces, **params)
+    check_bvh(structure, vertices, faces, **params)
+    assert structure.stats["leaves_over_max_depth"] == 0
+
+
+def chain(lo, hi):
+    """Triangles of size 2^k at x = 2^k: binned SAH with 2 bins peels off one per level."""
+    scale = 2.0 ** np.arange(lo, hi)
+    corners = np.array([[0.75, 0, 0], [1.25, 0, 0], [1, 0.5, 0]])
+    vertices = (corners[None] * scale[:, None, None]).reshape(-1, 3).astype(np.float32)
+    return vertices, np.arange(len(vertices), dtype=np.int32).reshape(-1, 3)
+
+
+def test_depth_limit_leaves_a_big_leaf():
+    vertices, faces = chain(-40, 40)
+    structure = accel.build("bvh", vertices, faces, bins=2, max_leaf_size=1)
+    check_bvh(structure, vertices, faces, bins=2, max_leaf_size=1)
+    stats = structure.stats
+    assert stats["depth"] == 64 and stats["leaves_over_max_depth"] >= 1
+    assert stats["triangles_per_leaf_max"] > 1
+    # Still traced like brute force: axis-parallel rays down onto every triangle.
+    # Triangle k lies in z = 0 at scale 2^k: the ray starts 2^k above its centroid.
+    corners = vertices.reshape(-1, 3, 3)
+    origins = corners.mean(axis=1)
+    origins[:, 2] = corners[:, 1, 0] - corners[:, 0, 0]
+    directions = np.tile(np.float32([0, -0.0, -1]), (len(origins), 1))
+    brute = accel.build("brute", vertices, faces)
+    # (float32 kernels lose triangles of size 2^-40 or so: brute force misses them too.)
+    moderate = np.abs(np.log2(origins[:, 2])) <= 16
+    for kernel in jrt.KERNELS:
+        got = as_numpy(jrt.closest_hit(structure, origins, directions, kernel=kernel))
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
+        np.testing.assert_array_equal(got["triangle"][moderate], np.flatnonzero(moderate))
+        for key in want:
+            np.testing.assert_array_equal(got[key], want[key])
+
+
+# ---------------------------------------------------------------------------------------------
+# Degenerate faces, empty and tiny meshes
+# ---------------------------------------------------------------------------------------------
+
+
+def stacked(count, *, z0=1.0):
+    """``count`` triangles covering (0.5, 0.5) at z = z0, z0 + 1, ... (face k at z0 + k)."""
+    base = np.array([[-1, -1, 0], [3, -1, 0], [-1, 3, 0]], np.float32)
+    vertices = np.concatenate([base + np.float32([0, 0, z0 + k]) for k in range(count)])
+    return vertices.reshape(-1, 3), np.arange(3 * count, dtype=np.int32).reshape(-1, 3)
+
+
+def test_degenerate_faces_are_skipped():
+    vertices, faces = stacked(3)
+    extra = np.array([[0.5, 0.5, 0.5], [1.5, 1.5, 0.5], [2.5, 2.5, 0.5]], np.float32)
+    vertices = np.concatenate([vertices, extra])
+    degenerate = np.array([[9, 10, 11], [0, 0, 1], [9, 9, 9], [3, 4, 3]], np.int32)
+    faces = np.concatenate([degenerate[:2], faces, degenerate[2:]])
+    for max_leaf_size in (1, 4):
+        structure = accel.build("bvh", vertices, faces, max_leaf_size=max_leaf_size)
+        check_bvh(structure, vertices, faces, max_leaf_size=max_leaf_size)
+        assert structure.stats["degenerate_skipped"] == 4
+        np.testing.assert_array_equal(np.sort(structure["triangle_ids"]), [2, 3, 4])
+        # A ray through the collinear face (at z = 0.5, below the first real face) hits the
+        # nearest real face (index 2, at z = 1).
+        hits = as_numpy(jrt.closest_hit(structure, np.float32([[0.5, 0.5, 0]]),
+                                        np.float32([[0, 0, 1]])))
+        assert hits["triangle"][0] == 2 and hits["t"][0] == 1
+
+
+@pytest.mark.parametrize("vertex_count", [0, 3])
+def test_empty_mesh_builds(vertex_count):
+    vertices = np.zeros((vertex_count, 3), np.float32)
+    faces = np.zeros((0, 3), np.int32)
+    structure = accel.build("bvh", vertices, faces)
+    check_bvh(structure, vertices, faces)
+    assert structure.stats["triangles"] == 0 and structure.stats["nodes"] == 1
+    assert structure.stats["leaves"] == 1 and structure.stats["depth"] == 0
+
+
+@pytest.mark.parametrize("vertex_count", [0, 3])
+def test_empty_mesh_traces_all_misses(vertex_count):
+    vertices = np.zeros((vertex_count, 3), np.float32)
+    structure = accel.build("bvh", vertices, np.zeros((0, 3), np.int32))
+    origins = np.float32([[0, 0, -1], [0.5, 0.5, 0.5], [0, 0, 0]])
+    directions = np.float32([[0, 0, 1], [1, 0, 0], [0, -1, 0]])
+    for kernel in jrt.KERNELS:
+        hits = as_numpy(jrt.closest_hit(structure, origins, directions, kernel=kernel))
+        np.testing.assert_array_equal(hits["triangle"], -1)
+        np.testing.assert_array_equal(hits["t"], np.inf)
+        np.testing.assert_array_equal(hits["u"], 0)
+        np.testing.assert_array_equal(hits["v"], 0)
+        np.testing.assert_array_equal(
+            np.asarray(jrt.occluded(structure, origins, directions, kernel=kernel)), False)
+
+
+ALL_DEGENERATE = (np.float32([[0, 0, 0], [1, 1, 1], [2, 2, 2]]),
+                  np.int32([[0, 1, 2], [0, 0, 1], [2, 2, 2]]))
+
+
+def test_all_degenerate_mesh_builds_empty():
+    structure = accel.build("bvh", *ALL_DEGENERATE)
+    check_bvh(structure, *ALL_DEGENERATE)
+    assert structure.stats["degenerate_skipped"] == 3
+    assert structure.stats["triangles"] == 0
+
+
+def test_all_degenerate_mesh_traces_all_misses():
+    structure = accel.build("bvh", *ALL_DEGENERATE)
+    hits = as_numpy(jrt.closest_hit(structure, np.float32([[1, 1, 0]]),
+                                    np.float32([[0, 0, 1]])))
+    assert hits["triangle"][0] == -1
+
+
+@pytest.mark.parametrize("count", [1, 2, 3])
+@pytest.mark.parametrize("max_leaf_size", [1, 4])
+@pytest.mark.parametrize("method", ["sah", "median"])
+def test_tiny_meshes_build_and_hit(count, max_leaf_size, method):
+    vertices, faces = stacked(count)
+    structure = accel.build("bvh", vertices, faces, method=method, max_leaf_size=max_leaf_size)
+    check_bvh(structure, vertices, faces, method=method, max_leaf_size=max_leaf_size)
+    if count <= max_leaf_size and method == "median":
+        # (SAH may split a node that could be a leaf, when the split is cheaper.)
+        assert structure.stats["interior_nodes"] == 0 and structure.stats["leaves"] == 1
+    # Up from below (nearest: face 0), down from above (nearest: the last face), from
+    # between faces 0 and 1 both ways, off to the side (a miss).
+    top = count + 1.0
+    origins = np.float32([[0.5, 0.5, 0], [0.5, 0.5, top], [0.5, 0.5, 1.5], [0.5, 0.5, 1.5],
+                          [9, 9, 0]])
+    directions = np.float32([[0, 0, 1], [0, 0, -1], [0, 0, 1], [0, 0, -1], [0, 0, 1]])
+    expected_triangle = [0, count - 1, 1 if count > 1 else -1, 0, -1]
+    expected_t = [1, 1, 0.5 if count > 1 else np.inf, 0.5, np.inf]
+    # (One kernel: each shape compiles anew; tests/test_bvh_traversal.py covers them all.)
+    hits = as_numpy(jrt.closest_hit(structure, origins, directions))
+    np.testing.assert_array_equal(hits["triangle"], expected_triangle)
+    np.testing.assert_array_equal(hits["t"], np.float32(expected_t))
+    occ = np.asarray(jrt.occluded(structure, origins, directions))
+    np.testing.assert_array_equal(occ, np.asarray(expected_triangle) >= 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameters
+# ---------------------------------------------------------------------------------------------
+
+
+BAD_PARAMS = [
+    ("method", "sweep"),
+    ("method", "SAH"),
+    ("method", None),
+    ("bins", 1),
+    ("bins", 0),
+    ("bins", 257),
+    ("bins", 16.0),
+    ("bins", "16"),
+    ("max_leaf_size", 0),
+    ("max_leaf_size", -1),
+    ("max_leaf_size", 256),
+    ("max_leaf_size", 2.5),
+    ("traversal_cost", 0.0),
+    ("traversal_cost", -0.5),
+    ("traversal_cost", float("nan")),
+    ("traversal_cost", float("inf")),
+    ("intersection_cost", 0),
+    ("intersection_cost", -1.0),
+    ("intersection_cost", float("nan")),
+]
+
+
+@pytest.mark.parametrize(("name", "value"), BAD_PARAMS)
+def test_bad_parameters_raise(name, value):
+    vertices, faces = stacked(2)
+    with pytest.raises(ValueError, match=name):
+        accel.build("bvh", vertices, faces, **{name: value})
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("bins", 2), ("bins", 256), ("max_leaf_size", 1), ("max_leaf_size", 255),
+    ("traversal_cost", 1e-6), ("intersection_cost", 100.0), ("bins", np.int64(8)),
+])
+def test_parameter_bounds_are_accepted(name, value):
+    vertices, faces = random_mesh(1, 50, grid=False, shared=False, degenerate=0, duplicates=0)
+    structure = accel.build("bvh", vertices, faces, **{name: value})
+    check_bvh(structure, vertices, faces, **{name: value})
+
+
+def test_unknown_builder_raises():
+    vertices, faces = stacked(1)
+    with pytest.raises(ValueError, match="octree"):
+        accel.build("octree", vertices, faces)

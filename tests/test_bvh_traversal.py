@@ -1,0 +1,577 @@
+"""BVH traversal (``jrt.closest_hit`` / ``jrt.occluded`` on ``accel.build("bvh", ...)``).
+
+The contract: with the same kernel, the BVH returns exactly brute force's answer: the same
+triangle, the same ``t`` bit for bit, the same ``u, v``; ``occluded`` the same booleans.
+Checked on the camel (camera and incoherent rays, every kernel) and, with hypothesis, on
+random triangle soups built to hit the edge cases of box tests: axis-aligned flat
+triangles, exactly shared coordinates and duplicated triangles (ties), axis-parallel rays
+with +0.0 and -0.0 direction components, origins exactly on the planes of node boxes.
+
+Compile sharing in the property tests: jit compiles once per array shape and static
+layout, so every soup is traced with the same shapes. The BVH's node rows are padded with
+unreferenced zero rows, its triangle rows likewise, and its leaf references re-encoded with
+a fixed ``leaf_bits`` (the same tree: the builder picks the smallest ``leaf_bits`` that
+fits); brute force's triangles are padded with all-zero (degenerate, never hit) rows, as
+brute force pads its own chunks.
+
+Known limitation (SLIVER_BUG below, documented in the README): moller_trumbore and
+plane_barycentric can put a sliver triangle's hit before the triangle's own bounding box,
+beyond the engine's box margin (their t is off by up to 4 %), and the BVH, which culls that
+box, then disagrees with brute force (the BVH's answer is the one nearer the exact one in
+the cases found). watertight bounds its error and never does this. The minimal cases are
+strict xfails; a property example whose every disagreement has that cause xfails, any
+other disagreement fails.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import accel
+import jrt
+from accel.structure import Structure
+from jrt.engine import StackOverflowError
+from jrt.raysets import camera_set, incoherent_set
+from jrt.trace import as_numpy
+
+KERNELS = list(jrt.KERNELS)
+RAYS = 20_000
+
+kernels = pytest.mark.parametrize("kernel", KERNELS)
+
+
+def bits(a) -> np.ndarray:
+    """float32 bit patterns, for bitwise comparison (inf and -0.0 included)."""
+    return np.ascontiguousarray(np.asarray(a, np.float32)).view(np.int32)
+
+
+def differ(got: dict, want: dict) -> np.ndarray:
+    """bool [N]: another triangle, or another t, u or v bit pattern."""
+    return ((got["triangle"] != want["triangle"]) | (bits(got["t"]) != bits(want["t"]))
+            | (bits(got["u"]) != bits(want["u"])) | (bits(got["v"]) != bits(want["v"])))
+
+
+def assert_same_hits(got: dict, want: dict, origins=None, directions=None, context=""):
+    """Same triangle, same t, u, v bit for bit; the message shows the first disagreements."""
+    bad = differ(got, want)
+    if bad.any():
+        rows = np.flatnonzero(bad)[:5]
+        lines = [f"{context}: {bad.sum()} of {len(bad)} rays differ from brute force"]
+        for i in rows:
+            ray = "" if origins is None else (
+                f" o={origins[i].tolist()} d={directions[i].tolist()}")
+            lines.append(
+                f"  ray {i}{ray}: bvh ({got['triangle'][i]}, t={got['t'][i]!r}, "
+                f"u={got['u'][i]!r}, v={got['v'][i]!r}) brute ({want['triangle'][i]}, "
+                f"t={want['t'][i]!r}, u={want['u'][i]!r}, v={want['v'][i]!r})")
+        raise AssertionError("\n".join(lines))
+
+
+# ---------------------------------------------------------------------------------------------
+# The camel
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def camel_bvh(camel):
+    return accel.build("bvh", camel.vertices, camel.faces)
+
+
+@pytest.fixture(scope="module")
+def camel_rays(camel):
+    # The same count in both sets, so that they share every compiled function.
+    origins, directions = camera_set(camel.vertices, RAYS)
+    return {
+        "camera": (origins[:RAYS], directions[:RAYS]),
+        "incoherent": incoherent_set(camel.vertices, RAYS, seed=0),
+    }
+
+
+@pytest.fixture(scope="module")
+def brute_hits(camel_brute, camel_rays):
+    """Brute force's closest hits per (kernel, ray set), computed once when first asked."""
+    cache = {}
+
+    def get(kernel, ray_set):
+        if (kernel, ray_set) not in cache:
+            origins, directions = camel_rays[ray_set]
+            cache[kernel, ray_set] = as_numpy(
+                jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
+        return cache[kernel, ray_set]
+
+    return get
+
+
+@kernels
+@pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
+def test_camel_closest_hit_matches_brute(camel_bvh, camel_rays, brute_hits, kernel, ray_set):
+    origins, directions = camel_rays[ray_set]
+    want = brute_hits(kernel, ray_set)
+    got = as_numpy(jrt.closest_hit(camel_bvh, origins, directions, kernel=kernel))
+    assert (want["triangle"] >= 0).mean() > 0.1
+    assert_same_hits(got, want, origins, directions, f"{kernel}/{ray_set}")
+
+
+BRUTE_OCCLUDED = 2_000  # rays of the occlusion test that brute force traces itself
+
+
+@kernels
+def test_camel_occluded_matches_brute(camel, camel_bvh, camel_brute, camel_rays, brute_hits,
+                                      kernel):
+    """20k rays, tmax a random multiple (0 to 2) of each ray's closest hit (or of the scene
+    size for a miss), 2% of them cut exactly at their closest hit (strict: not occluded by
+    that triangle).
+
+    Brute force's answer: away from tmax, whether its closest hit comes before tmax; the
+    rays at or near tmax (and as many others, up to BRUTE_OCCLUDED) through brute force's
+    own ``occluded``.
+    """
+    origins, directions = camel_rays["incoherent"]
+    t = brute_hits(kernel, "incoherent")["t"]
+    rng = np.random.default_rng(4)
+    scale = np.where(np.isfinite(t), t, 3 * camel.diagonal)
+    tmax = (rng.uniform(0, 2, len(t)) * scale).astype(np.float32)
+    exact = rng.random(len(t)) < 0.02
+    tmax[exact] = t[exact]
+    with np.errstate(invalid="ignore"):  # inf - inf for misses
+        near = np.isfinite(t) & (np.abs(t - tmax) <= 1e-5 * t)
+    others = np.flatnonzero(~near)
+    traced = np.union1d(np.flatnonzero(near), rng.choice(
+        others, BRUTE_OCCLUDED - near.sum(), replace=False))
+    got = np.asarray(jrt.occluded(camel_bvh, origins, directions, tmax, kernel=kernel))
+    want = np.where(near, False, t < tmax)
+    want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
+                                           tmax[traced], kernel=kernel))
+    assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
+    bad = np.flatnonzero(got != want)
+    assert bad.size == 0, (f"{bad.size} rays differ, e.g. {bad[:5]}: bvh {got[bad[:5]]} "
+                           f"tmax {tmax[bad[:5]]} closest t {t[bad[:5]]}")
+
+
+def check_counters(count: jrt.engine.Counters, hit: np.ndarray, structure):
+    steps, tests, leaves = (np.asarray(a) for a in count)
+    for a in (steps, tests, leaves):
+        assert a.dtype == np.int32 and a.shape == hit.shape
+        assert (a >= 0).all()
+    assert (steps >= 1).all(), "every ray takes at least the root's step"
+    assert (tests[hit] >= 1).all() and (leaves[hit] >= 1).all(), "a hit without a test"
+    assert (leaves <= tests).all(), "a leaf visited without a triangle test"
+    # Each node is visited, and each triangle tested, at most once per ray.
+    assert (tests <= structure.stats["triangles"]).all()
+    assert (leaves <= structure.stats["leaves"]).all()
+    assert (steps <= structure.stats["nodes"]).all()
+    return steps, tests, leaves
+
+
+def test_camel_counters(camel_bvh, camel_rays, brute_hits):
+    ray_set = "incoherent"  # hits and misses
+    origins, directions = camel_rays[ray_set]
+    want = brute_hits("watertight", ray_set)
+    hits, count = jrt.closest_hit(camel_bvh, origins, directions, counters=True)
+    got = as_numpy(hits)
+    assert_same_hits(got, want, origins, directions, f"counters/{ray_set}")
+    hit = got["triangle"] >= 0
+    steps, tests, _ = check_counters(count, hit, camel_bvh)
+    # Culling works: a ray tests a tiny share of the triangles (brute force tests them all).
+    assert tests.mean() < 0.01 * camel_bvh.stats["triangles"]
+
+    mask, occ_count = jrt.occluded(camel_bvh, origins, directions, counters=True)
+    mask = np.asarray(mask)
+    np.testing.assert_array_equal(mask, hit)  # tmax = inf: occluded iff there is a hit
+    occ_steps, occ_tests, occ_leaves = check_counters(occ_count, mask, camel_bvh)
+    # Any-hit follows the closest-hit traversal up to its first hit, then stops.
+    assert (occ_tests <= tests).all() and (occ_steps <= steps).all()
+    assert (occ_leaves <= np.asarray(count.leaves)).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Random soups (hypothesis)
+# ---------------------------------------------------------------------------------------------
+
+CAP = 200  # triangles per soup, padded to
+N_RAYS = 256
+LEAF_BITS = 3  # leaves of up to 7 triangles
+PROPERTY = settings(max_examples=25, deadline=None, database=None)
+
+
+def fixed_shape_bvh(structure: Structure) -> Structure:
+    """The same tree with CAP node and triangle rows and leaf references of LEAF_BITS."""
+    nodes = np.asarray(structure["nodes"])
+    m = nodes.shape[0]
+    assert m <= CAP
+    leaf_bits = structure.layout_value("leaf_bits")
+    assert leaf_bits <= LEAF_BITS
+    refs = nodes.view(np.int32)[:, 12:14]
+    first, count = ~refs >> leaf_bits, ~refs & ((1 << leaf_bits) - 1)
+    padded = np.zeros((CAP, 16), np.float32)
+    padded[:m] = nodes
+    padded.view(np.int32)[:m, 12:14] = np.where(refs >= 0, refs,
+                                                ~((first << LEAF_BITS) | count))
+    t = structure.num_triangles
+    triangles = np.zeros((CAP, 3, 3), np.float32)
+    triangles[:t] = structure["triangles"]
+    ids = np.full(CAP, -1, np.int32)
+    ids[:t] = structure["triangle_ids"]
+    return Structure(kind="bvh", arrays={"nodes": padded, "triangles": triangles,
+                                         "triangle_ids": ids},
+                     layout=(("leaf_bits", LEAF_BITS),), stats=structure.stats)
+
+
+def fixed_shape_brute(structure: Structure) -> Structure:
+    t = structure.num_triangles
+    triangles = np.zeros((CAP, 3, 3), np.float32)
+    triangles[:t] = structure["triangles"]
+    ids = np.arange(CAP, dtype=np.int32) + 10 * CAP  # padding rows: never hit
+    ids[:t] = structure["triangle_ids"]
+    return Structure(kind="brute", arrays={"triangles": triangles, "triangle_ids": ids})
+
+
+def soup(rng, n, *, grid, flat, duplicates, shared):
+    """n triangles (vertices [3n, 3], faces [n, 3]) with the edge cases mixed in."""
+    if grid:  # coordinates on a coarse grid: many exactly shared, flat and collinear faces
+        tri = rng.integers(-8, 9, size=(n, 3, 3)) * 0.25
+    else:
+        centres = rng.uniform(-4, 4, size=(n, 1, 3))
+        sizes = 10.0 ** rng.uniform(-2, 0.3, size=(n, 1, 1))
+        tri = centres + sizes * rng.normal(size=(n, 3, 3))
+    tri = tri.astype(np.float32)
+    coords = tri.reshape(-1, 3)
+    # Axis-aligned flat triangles, in the plane of some other vertex's coordinate.
+    flat_rows = np.flatnonzero(rng.random(n) < flat)
+    axes = rng.integers(0, 3, size=flat_rows.size)
+    tri[flat_rows, :, axes] = coords[rng.integers(0, len(coords), flat_rows.size), axes][:, None]
+    # Shared vertices and edges: corners copied from other triangles.
+    for _ in range(int(shared * n)):
+        a, b = rng.integers(0, n, 2)
+        k = rng.integers(1, 3)
+        tri[a, :k] = tri[b, rng.permutation(3)[:k]]
+    # Exact duplicates (ties: the lower face index wins), some with rotated corners.
+    dup = np.flatnonzero(rng.random(n) < duplicates)
+    src = rng.integers(0, n, dup.size)
+    tri[dup] = np.roll(tri[src], rng.integers(0, 3), axis=1)
+    return tri.reshape(-1, 3), np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+
+
+def signed_zeros(rng, size):
+    return np.where(rng.random(size) < 0.5, np.float32(0.0), np.float32(-0.0))
+
+
+def rays(rng, vertices, faces):
+    """N_RAYS rays: aimed at points of triangles (vertices and edge midpoints included),
+    axis-parallel through such points with ±0.0 components, from origins on box planes
+    (coordinates of vertices), from vertices, and at random."""
+    tri = vertices[faces].astype(np.float64)
+    lo, hi = vertices.min(axis=0).astype(np.float64), vertices.max(axis=0).astype(np.float64)
+    span = hi - lo + 1
+    n = N_RAYS
+    # Targets: barycentric points, a quarter of them vertices and a quarter edge midpoints.
+    b = rng.dirichlet(np.ones(3), n)
+    kind_b = rng.integers(0, 4, n)
+    b[kind_b == 0] = np.eye(3)[rng.integers(0, 3, (kind_b == 0).sum())]
+    mid = np.array([[0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]])
+    b[kind_b == 1] = mid[rng.integers(0, 3, (kind_b == 1).sum())]
+    target = np.einsum("nk,nkj->nj", b, tri[rng.integers(0, len(tri), n)]).astype(np.float32)
+
+    origins = (lo - span / 2 + rng.random((n, 3)) * 2 * span).astype(np.float32)
+    directions = target - origins
+    kind = rng.integers(0, 5, n)
+    # 1: axis-parallel through the target; the origin's axis coordinate is outside the
+    # scene or a vertex's coordinate (a box plane), its other two the target's own.
+    axis_rows = np.flatnonzero(kind == 1)
+    axis = rng.integers(0, 3, axis_rows.size)
+    origins[axis_rows] = target[axis_rows]
+    plane = vertices[rng.integers(0, len(vertices), axis_rows.size), axis]
+    outside = np.where(rng.random(axis_rows.size) < 0.5, lo[axis] - 1, hi[axis] + 1)
+    origins[axis_rows, axis] = np.where(rng.random(axis_rows.size) < 0.5, plane, outside)
+    toward = np.sign(target[axis_rows, axis] - origins[axis_rows, axis])
+    toward[toward == 0] = 1
+    directions[axis_rows] = signed_zeros(rng, (axis_rows.size, 3))
+    directions[axis_rows, axis] = toward
+    # 2: every origin coordinate a vertex coordinate (on box planes), aimed at the target
+    # or axis-parallel.
+    plane_rows = np.flatnonzero(kind == 2)
+    picks = rng.integers(0, len(vertices), (plane_rows.size, 3))
+    origins[plane_rows] = vertices[picks, np.arange(3)]
+    directions[plane_rows] = target[plane_rows] - origins[plane_rows]
+    parallel = plane_rows[rng.random(plane_rows.size) < 0.5]
+    directions[parallel] = signed_zeros(rng, (parallel.size, 3))
+    directions[parallel, rng.integers(0, 3, parallel.size)] = np.where(
+        rng.random(parallel.size) < 0.5, 1, -1)
+    # 3: from a vertex.
+    vertex_rows = np.flatnonzero(kind == 3)
+    origins[vertex_rows] = vertices[rng.integers(0, len(vertices), vertex_rows.size)]
+    # 4: random.
+    random_rows = np.flatnonzero(kind == 4)
+    directions[random_rows] = rng.normal(size=(random_rows.size, 3))
+
+    d = directions.astype(np.float64)
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.where(length > 0, d / np.where(length > 0, length, 1), [[0, 0, 1]])
+    unit = d.astype(np.float32)
+    unit[axis_rows] = directions[axis_rows]  # keep the signed zeros exactly
+    unit[parallel] = directions[parallel]
+    return origins, unit
+
+
+@st.composite
+def soups(draw):
+    """(vertices, faces, build parameters, origins, directions, rng) of one example."""
+    seed = draw(st.integers(0, 2**32 - 1))
+    n = draw(st.integers(10, CAP))
+    grid = draw(st.booleans())
+    flat = draw(st.sampled_from([0.0, 0.3, 1.0]))
+    duplicates = draw(st.sampled_from([0.0, 0.1, 0.5]))
+    shared = draw(st.sampled_from([0.0, 0.5, 2.0]))
+    params = {
+        "method": draw(st.sampled_from(["sah", "median"])),
+        "max_leaf_size": draw(st.sampled_from([1, 2, 4, 7])),
+        "bins": draw(st.sampled_from([2, 16])),
+    }
+    rng = np.random.default_rng(seed)
+    vertices, faces = soup(rng, n, grid=grid, flat=flat, duplicates=duplicates, shared=shared)
+    origins, directions = rays(rng, vertices, faces)
+    return vertices, faces, params, origins, directions, rng
+
+
+def tmax_mix(rng, t, scale):
+    """inf, the closest hit's t exactly or one ulp past it, fractions of it, 0, random."""
+    n = len(t)
+    choice = rng.integers(0, 6, n)
+    hit_t = np.where(np.isfinite(t), t, scale).astype(np.float32)
+    tmax = np.full(n, np.inf, np.float32)
+    tmax[choice == 1] = hit_t[choice == 1]
+    tmax[choice == 2] = np.nextafter(hit_t, np.float32(np.inf))[choice == 2]
+    tmax[choice == 3] = (rng.random(n) * hit_t)[choice == 3]
+    tmax[choice == 4] = 0
+    tmax[choice == 5] = (rng.random(n) * 2 * scale)[choice == 5]
+    return tmax
+
+
+SLIVER_BUG = (
+    "known limitation: for a thin (sliver) triangle, moller_trumbore (t up to 4% short) and "
+    "plane_barycentric (up to about 1e-4) can return a t before the ray enters the "
+    "triangle's own bounding box, by more than the engine's BOX_MARGIN; the BVH then culls "
+    "the box that brute force's hit lies in (see test_sliver_triangle_behind_a_nearer_one)")
+
+
+def hits_before_their_box(kernel, triangles, origins, directions, tmax) -> np.ndarray:
+    """bool [R]: has the ray a kernel hit (0 < t < tmax) before it enters that triangle's
+    own bounding box (float64 slab test, no margin)? The mechanism of SLIVER_BUG."""
+    r, t_count = len(origins), len(triangles)
+    o, d = np.repeat(origins, t_count, 0), np.repeat(directions, t_count, 0)
+    tri = np.tile(triangles, (r, 1, 1))
+    t = np.asarray(jax.jit(jrt.KERNELS[kernel])(o, d, tri[:, 0], tri[:, 1], tri[:, 2])[0])
+    t = t.reshape(r, t_count)
+    lo, hi = (triangles.min(axis=1).astype(np.float64), triangles.max(axis=1).astype(np.float64))
+    o64, d64 = origins.astype(np.float64)[:, None], directions.astype(np.float64)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (lo[None] - o64) / d64, (hi[None] - o64) / d64
+        near = np.minimum(t0, t1)
+    near = np.where(np.isnan(near), -np.inf, near)
+    tnear = np.maximum(near.max(axis=-1), 0)
+    return np.any(np.isfinite(t) & (t < tmax[:, None]) & (t < tnear), axis=1)
+
+
+def xfail_if_sliver_bug(bad, kernel, structure, origins, directions, tmax):
+    """Mismatches all explained by SLIVER_BUG: xfail (any other mismatch fails)."""
+    explained = hits_before_their_box(kernel, np.asarray(structure["triangles"]),
+                                      origins[bad], directions[bad], tmax[bad])
+    if explained.all():
+        pytest.xfail(f"{SLIVER_BUG}; {kernel}, rays {np.flatnonzero(bad).tolist()}")
+
+
+@PROPERTY
+@given(case=soups())
+def test_soup_closest_hit_matches_brute(case):
+    vertices, faces, params, origins, directions, rng = case
+    unpadded = accel.build("brute", vertices, faces)
+    bvh = fixed_shape_bvh(accel.build("bvh", vertices, faces, **params))
+    brute = fixed_shape_brute(unpadded)
+    scale = float(np.abs(vertices).max()) * 4
+    for kernel in KERNELS:
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
+        tmax = np.where(rng.random(N_RAYS) < 0.75, np.float32(np.inf),
+                        tmax_mix(rng, want["t"], scale))
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel, tmax=tmax))
+        got = as_numpy(jrt.closest_hit(bvh, origins, directions, kernel=kernel, tmax=tmax,
+                                       lanes=64))
+        bad = differ(got, want)
+        if bad.any():
+            xfail_if_sliver_bug(bad, kernel, unpadded, origins, directions, tmax)
+        assert_same_hits(got, want, origins, directions, f"{kernel} {params}")
+
+
+@PROPERTY
+@given(case=soups())
+def test_soup_occluded_matches_brute(case):
+    vertices, faces, params, origins, directions, rng = case
+    unpadded = accel.build("brute", vertices, faces)
+    bvh = fixed_shape_bvh(accel.build("bvh", vertices, faces, **params))
+    brute = fixed_shape_brute(unpadded)
+    scale = float(np.abs(vertices).max()) * 4
+    for kernel in KERNELS:
+        # (The closest hits without tmax give the interesting cut-off points.)
+        t = np.asarray(jrt.closest_hit(bvh, origins, directions, kernel=kernel, lanes=64).t)
+        tmax = tmax_mix(rng, t, scale)
+        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
+        got = np.asarray(jrt.occluded(bvh, origins, directions, tmax, kernel=kernel, lanes=32))
+        if (got != want).any():
+            xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
+        bad = np.flatnonzero(got != want)
+        assert bad.size == 0, (
+            f"{kernel} {params}: {bad.size} rays differ; first: o={origins[bad[0]].tolist()} "
+            f"d={directions[bad[0]].tolist()} tmax={tmax[bad[0]]!r} bvh={got[bad[0]]}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Known bug: kernel t before the triangle's own box (SLIVER_BUG)
+# ---------------------------------------------------------------------------------------------
+
+# Face 0: a sliver (corners 1 and 2 a few thousandths apart) hit near its short edge; the
+# kernel's t is below the entry of its box. Face 1: a triangle facing the ray at a t between
+# the two, entered first: the BVH keeps face 1 and culls face 0's leaf, brute force returns
+# face 0 (the kernel's t for it is the smaller one).
+SLIVER_CASES = {
+    "moller_trumbore": (  # kernel t of face 0: 6.43477 (exact: 6.7215), its box entry 6.70;
+        # face 1: 6.5692
+        [[-3.961080312728882, -2.319011688232422, 3.6594929695129395],
+         [2.367558240890503, 0.44216349720954895, -1.14943265914917],
+         [2.3695716857910156, 0.44348636269569397, -1.1511796712875366],
+         [1.4088054895401, 0.12478986382484436, -0.1387958973646164],
+         [4.154040336608887, 1.3346184492111206, -0.1387958973646164],
+         [1.703729271888733, -0.544424831867218, -3.048292636871338]],
+        [4.991476535797119, -5.524996757507324, 0.492768794298172],
+        [-0.39111027121543884, 0.8874724507331848, -0.2437732070684433]),
+    "plane_barycentric": (  # kernel t of face 0: 4.018191, its box entry (widened by
+        # BOX_MARGIN = 2^-16) 4.01842; face 1: 4.018305
+        [[1.8823611736297607, 2.4247586727142334, -3.7591285705566406],
+         [-3.691152334213257, -3.323087453842163, 3.616943120956421],
+         [-3.6912972927093506, -3.324944496154785, 3.6159825325012207],
+         [-3.050663709640503, -2.373474597930908, 4.445096492767334],
+         [-5.729014873504639, -3.724931001663208, 4.445096492767334],
+         [-2.2948176860809326, -3.871429681777954, 1.958164930343628]],
+        [-5.192103385925293, -0.34934157133102417, 1.3687511682510376],
+        [0.3734421730041504, -0.7400972843170166, 0.5592825412750244]),
+}
+
+
+@pytest.mark.parametrize(("case", "kernel"), [
+    pytest.param(case, kernel, marks=[pytest.mark.xfail(strict=True, reason=SLIVER_BUG)]
+                 if kernel == case else [])
+    for case in SLIVER_CASES for kernel in KERNELS])
+def test_sliver_triangle_behind_a_nearer_one(case, kernel):
+    corners, origin, direction = SLIVER_CASES[case]
+    vertices = np.float32(corners)
+    faces = np.int32([[0, 1, 2], [3, 4, 5]])
+    origins, directions = np.float32([origin]), np.float32([direction])
+    want = as_numpy(jrt.closest_hit(accel.build("brute", vertices, faces), origins, directions,
+                                    kernel=kernel))
+    got = as_numpy(jrt.closest_hit(accel.build("bvh", vertices, faces, max_leaf_size=1),
+                                   origins, directions, kernel=kernel))
+    if kernel == case:  # the kernel that shows the bug on this case: the mechanism holds
+        assert hits_before_their_box(kernel, vertices[faces], origins, directions,
+                                     np.float32([np.inf]))[0]
+        assert want["triangle"][0] == 0
+    assert_same_hits(got, want, origins, directions, f"{kernel} on the {case} case")
+
+
+# ---------------------------------------------------------------------------------------------
+# Stack, options, odd inputs
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def deep_soup():
+    """200 overlapping triangles, one per leaf, and rays through the cluster."""
+    rng = np.random.default_rng(11)
+    vertices, faces = soup(rng, CAP, grid=False, flat=0.3, duplicates=0.0, shared=0.5)
+    origins, directions = rays(rng, vertices, faces)
+    structure = accel.build("bvh", vertices, faces, max_leaf_size=1)
+    assert structure.stats["depth"] >= 8
+    return vertices, faces, structure, origins, directions
+
+
+def test_stack_overflow_raises(deep_soup):
+    vertices, faces, structure, origins, directions = deep_soup
+    bvh = fixed_shape_bvh(structure)
+    with pytest.raises(StackOverflowError, match="stack_size"):
+        jrt.closest_hit(bvh, origins, directions, lanes=64, stack_size=1)
+    with pytest.raises(StackOverflowError):
+        jrt.occluded(bvh, origins, directions, lanes=32, stack_size=1)
+    # The default stack is deep enough, and the answers are brute force's.
+    got = as_numpy(jrt.closest_hit(bvh, origins, directions, lanes=64))
+    brute = fixed_shape_brute(accel.build("brute", vertices, faces))
+    assert_same_hits(got, as_numpy(jrt.closest_hit(brute, origins, directions)),
+                     origins, directions, "default stack")
+
+
+TINY_MESH = (np.float32([[-1, -1, 1], [3, -1, 1], [-1, 3, 1]]), np.int32([[0, 1, 2]]))
+
+
+def tiny(kind="bvh"):
+    """One triangle in z = 1 covering (0.5, 0.5)."""
+    return accel.build(kind, *TINY_MESH)
+
+
+def test_zero_rays_give_empty_arrays():
+    none = np.zeros((0, 3), np.float32)
+    structure = tiny()
+    for s in (structure, tiny("brute")):
+        hits = as_numpy(jrt.closest_hit(s, none, none))
+        assert {k: (a.shape, a.dtype) for k, a in hits.items()} == {
+            "t": ((0,), np.float32), "triangle": ((0,), np.int32),
+            "u": ((0,), np.float32), "v": ((0,), np.float32)}
+        assert np.asarray(jrt.occluded(s, none, none)).shape == (0,)
+    hits, count = jrt.closest_hit(structure, none, none, counters=True)
+    assert all(np.asarray(a).shape == (0,) for a in count)
+    mask, count = jrt.occluded(structure, none, none, counters=True)
+    assert np.asarray(mask).shape == (0,) and all(np.asarray(a).shape == (0,) for a in count)
+
+
+@pytest.mark.parametrize(("option", "value"), [
+    ("lanes", 0), ("lanes", -4), ("lanes", 2.0), ("stack_size", 0), ("stack_size", -1),
+    ("stack_size", 8.0),
+])
+@pytest.mark.parametrize("query", ["closest_hit", "occluded"])
+def test_bad_options_raise(query, option, value):
+    o, d = np.float32([[0.5, 0.5, 0]]), np.float32([[0, 0, 1]])
+    with pytest.raises(ValueError, match=option):
+        getattr(jrt, query)(tiny(), o, d, **{option: value})
+
+
+def test_unknown_structure_kind_raises():
+    structure = tiny()
+    octree = Structure(kind="octree", arrays=dict(structure.arrays), layout=structure.layout)
+    o, d = np.float32([[0.5, 0.5, 0]]), np.float32([[0, 0, 1]])
+    for query in (jrt.closest_hit, jrt.occluded):
+        with pytest.raises(ValueError, match="octree"):
+            query(octree, o, d)
+
+
+def test_counters_on_brute_force_raise():
+    structure = tiny("brute")
+    o, d = np.float32([[0.5, 0.5, 0]]), np.float32([[0, 0, 1]])
+    with pytest.raises(ValueError, match="counters"):
+        jrt.closest_hit(structure, o, d, counters=True)
+    with pytest.raises(ValueError, match="counters"):
+        jrt.occluded(structure, o, d, counters=True)
+
+
+def test_unknown_kernel_raises():
+    o, d = np.float32([[0.5, 0.5, 0]]), np.float32([[0, 0, 1]])
+    with pytest.raises(ValueError, match="kernel"):
+        jrt.closest_hit(tiny(), o, d, kernel="pluecker")
+
+
+def test_jax_arrays_in_and_lanes_beyond_the_rays():
+    """JAX inputs work as NumPy ones; more lanes than rays is fine."""
+    o = jnp.asarray(np.float32([[0.5, 0.5, 0], [0.5, 0.5, 2], [5, 5, 0]]))
+    d = jnp.asarray(np.float32([[0, 0, 1], [0, -0.0, -1], [0, 0, 1]]))
+    hits = as_numpy(jrt.closest_hit(tiny(), o, d, lanes=4096))
+    np.testing.assert_array_equal(hits["triangle"], [0, 0, -1])
+    np.testing.assert_array_equal(hits["t"], np.float32([1, 1, np.inf]))
