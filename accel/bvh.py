@@ -33,7 +33,8 @@ A reference ``r >= 0`` is the row of an interior node. ``r < 0`` is a leaf:
 ``~r = (first << leaf_bits) | count``, the leaf's triangles being rows
 ``first .. first+count-1`` of ``triangles`` (stored in leaf order). Row 0 is the root;
 when the whole tree is one leaf (one triangle, or a few that the SAH keeps together), row 0
-is a root whose child 0 is that leaf and child 1 an empty leaf. Boxes are the exact float32 bounds of their triangles.
+is a root whose child 0 is that leaf and child 1 an empty leaf. Boxes are the exact
+float32 bounds of their triangles.
 """
 
 from __future__ import annotations

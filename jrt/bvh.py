@@ -15,7 +15,7 @@ import functools
 import jax.numpy as jnp
 from jax import lax
 
-from jrt.engine import Step, Traversal, box_interval
+from jrt.engine import Step, Traversal, box_interval, computed_once
 
 
 def _start(arrays, ray):
@@ -41,11 +41,17 @@ def make(leaf_bits: int) -> Traversal:
         live = ref_t <= best_t  # a popped entry beyond the closest hit is skipped
         interior = live & (ref >= 0)
         leaf_here = live & (ref < 0)
-        # One gather of the 64-byte row, then one [L] vector per field (materialised
-        # once, so that the box tests below read contiguous lanes).
-        row = lax.optimization_barrier(arrays["nodes"][jnp.maximum(ref, 0)].T)
-        near0, far0 = box_interval(ray, row[0:3], row[3:6])
-        near1, far1 = box_interval(ray, row[6:9], row[9:12])
+        # One gather of the 64-byte row; the slab tests of both boxes are computed once
+        # (see jrt.engine.computed_once), on one [L] vector per field.
+        rows = arrays["nodes"][jnp.maximum(ref, 0)]
+
+        def boxes(ray, rows):
+            row = rows.T
+            return (*box_interval(ray, row[0:3], row[3:6]),
+                    *box_interval(ray, row[6:9], row[9:12]))
+
+        near0, far0, near1, far1 = computed_once(jnp.any(interior), boxes, ray, rows)
+        row = rows.T
         enter0 = interior & (near0 <= far0) & (near0 <= best_t)
         enter1 = interior & (near1 <= far1) & (near1 <= best_t)
         child0 = lax.bitcast_convert_type(row[12], jnp.int32)

@@ -183,7 +183,9 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         row = references[slot] if references is not None else slot
         tri = triangles[row]
         face = triangle_ids[row]
-        t, _, _ = fn(ray.origin, ray.direction, tri[:, 0], tri[:, 1], tri[:, 2])
+        t = computed_once(jnp.any(testing),
+                          lambda o, d, tri: fn(o, d, tri[:, 0], tri[:, 1], tri[:, 2])[0],
+                          ray.origin, ray.direction, tri)
         best_t, best_id = s["best_t"], s["best_id"]
         better = testing & (t < ray.tmax) & prefer(t, face, best_t, best_id)
         new = dict(s, best_t=jnp.where(better, t, best_t),
@@ -400,3 +402,18 @@ def box_interval(ray: Ray, lo, hi):
     tnear = jnp.maximum(jnp.maximum(near[0], near[1]), jnp.maximum(near[2], 0.0))
     tfar = jnp.minimum(jnp.minimum(far[0], far[1]), far[2])
     return tnear * (1 - BOX_MARGIN), tfar * (1 + BOX_MARGIN)
+
+
+def computed_once(any_lane, fn, *args):
+    """``fn(*args)`` (a pytree of [L] arrays), materialised once for all its readers.
+
+    XLA:CPU copies cheap elementwise producers into every fusion that reads them: the
+    slab tests of a BVH step were recomputed in seven fusions, the triangle kernel in
+    six. ``lax.optimization_barrier`` is removed before fusion on CPU; the boundary of a
+    conditional is not. ``any_lane`` (a bool scalar) also skips the work when no lane
+    needs it; the values are then garbage that no lane reads.
+    """
+    out_shape = jax.eval_shape(fn, *args)
+    return lax.cond(any_lane, fn,
+                    lambda *_: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), out_shape),
+                    *args)
