@@ -295,10 +295,12 @@ def _expected(field):
     return np.array([c[index] for c in CASES])
 
 
+@pytest.mark.parametrize("accel", ("brute", "bvh"))
 @pytest.mark.parametrize("kernel", tuple(KERNELS))
-def test_closest_hits_match_hand_worked_values(capsys, square, case_rays, tmp_path, kernel):
+def test_closest_hits_match_hand_worked_values(capsys, square, case_rays, tmp_path, kernel,
+                                               accel):
     out = tmp_path / "hits.npz"
-    stdout = _trace(capsys, square, case_rays, out, "--kernel", kernel)
+    stdout = _trace(capsys, square, case_rays, out, "--kernel", kernel, "--accel", accel)
     assert "square.off: 4 vertices, 2 triangles" in stdout
     assert f"{len(CASES)} rays, 5 hits" in stdout
     with np.load(out) as hits:
@@ -328,6 +330,15 @@ def test_every_kernel_gives_the_same_result(capsys, square, case_rays, tmp_path)
         np.testing.assert_array_equal(result["triangle"], first["triangle"], err_msg=kernel)
         for key in ("t", "u", "v"):
             np.testing.assert_allclose(result[key], first[key], atol=1e-6, err_msg=kernel)
+
+
+def test_unknown_accel_is_refused_with_the_allowed_names(capsys, square, case_rays, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main(["trace", str(square), str(case_rays), "-o", str(tmp_path / "h.npz"),
+              "--accel", "octree9"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "octree9" in err and "bvh" in err and "brute" in err
 
 
 def test_default_kernel_is_accepted_without_the_option(capsys, square, case_rays, tmp_path):
