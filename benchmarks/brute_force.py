@@ -12,15 +12,14 @@ Embree measured in this same process (absolute times drift on a shared machine).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
-from pathlib import Path
 
 import accel
 import jrt
 from benchmarks.peers import EmbreePeer
+from benchmarks.records import write_record
 from jrt.raysets import camera_set, incoherent_set
 
 
@@ -71,10 +70,7 @@ def main(argv=None) -> dict:
                                       "ratio_to_embree_1t": ratio})
             tests_text = f"{tests:9.0f}" if tests else f"{'':9}"
             print(f"{name:<11} {method:<22} {rate:12,.0f} {tests_text} {ratio:13.5f}")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2))
-    print(f"-> {out}")
+    write_record(record, args.json)
     return record
 
 

@@ -18,12 +18,10 @@ Ratios to Embree are the figures to quote: absolute times drift on a shared mach
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -31,6 +29,7 @@ import numpy as np
 import accel
 import jrt
 from benchmarks.peers import EmbreePeer
+from benchmarks.records import write_record
 from jrt.raysets import camera_set, incoherent_set
 
 
@@ -143,10 +142,7 @@ def main(argv=None) -> dict:
                 "notes": notes, **({"counters": counts, "first_call_seconds": first}
                                    if method == "jrt bvh" and query == "closest" else {})})
             print(f"{name:<11} {query:<9} {method:<18} {rate:9.3f} {ref / seconds:9.3f} {notes}")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2))
-    print(f"-> {out}")
+    write_record(record, args.json)
     return record
 
 

@@ -11,14 +11,13 @@ this takes minutes; the test suite checks 20k rays of each set.
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 
 import accel
 import jrt
+from benchmarks.records import write_record
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
@@ -60,10 +59,7 @@ def main(argv=None) -> dict:
                   f"{row['closest_hit_mismatches']} closest-hit mismatches; "
                   f"{row['occluded']:,} occluded: {row['occluded_mismatches']} mismatches "
                   f"({row['seconds']:.0f} s)", flush=True)
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2))
-    print(f"-> {out}")
+    write_record(record, args.json)
     return record
 
 

@@ -10,16 +10,15 @@ N log2 N (flat for O(N log N) growth) and the fitted exponent of time against N.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
-from pathlib import Path
 
 import igl
 import numpy as np
 
 import accel
 import jrt
+from benchmarks.records import write_record
 
 
 def main(argv=None) -> dict:
@@ -49,10 +48,7 @@ def main(argv=None) -> dict:
     exponent = float(np.polyfit(n, t, 1)[0]) if len(rows) > 1 else float("nan")
     print(f"fitted exponent: time ~ N^{exponent:.2f}")
     record = {"method": args.method, "rows": rows, "exponent": exponent}
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2))
-    print(f"-> {out}")
+    write_record(record, args.json)
     return record
 
 

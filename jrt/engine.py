@@ -144,23 +144,26 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     lane_index = jnp.arange(lanes, dtype=jnp.int32)
 
     def fresh(ids):
+        """The per-ray part of a lane's state for rays ``ids`` (>= n: no ray)."""
         ray = _load_rays(rays, ids, n)
-        return ray, traversal.start(arrays, ray)
+        lane = {
+            "ray_id": ids,
+            "ray": ray,
+            "trav": traversal.start(arrays, ray),
+            "trav_done": jnp.zeros(lanes, bool),
+            "cursor": jnp.zeros(lanes, jnp.int32),
+            "end": jnp.zeros(lanes, jnp.int32),
+            "best_t": ray.tmax,
+            "best_id": jnp.full(lanes, -1, jnp.int32),
+            "best_row": jnp.full(lanes, -1, jnp.int32),
+            "sp": jnp.zeros(lanes, jnp.int32),
+        }
+        if counters:
+            lane["count"] = jnp.zeros((lanes, 3), jnp.int32)
+        return lane
 
-    ids0 = lane_index
-    ray0, tstate0 = fresh(ids0)
-    zeros_i = jnp.zeros(lanes, jnp.int32)
     state = {
-        "ray_id": ids0,
-        "ray": ray0,
-        "trav": tstate0,
-        "trav_done": jnp.zeros(lanes, bool),
-        "cursor": zeros_i,
-        "end": zeros_i,
-        "best_t": ray0.tmax,
-        "best_id": jnp.full(lanes, -1, jnp.int32),
-        "best_row": jnp.full(lanes, -1, jnp.int32),
-        "sp": zeros_i,
+        **fresh(lane_index),
         "stack": jnp.zeros((lanes, stack_size, width), jnp.int32),
         "top": jnp.zeros((lanes, width), jnp.int32),
         "next_ray": jnp.int32(lanes),
@@ -169,7 +172,6 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         "out": jnp.full(n + lanes, -1, jnp.int32),
     }
     if counters:
-        state["count"] = jnp.zeros((lanes, 3), jnp.int32)
         state["out_count"] = jnp.zeros((n + lanes, 3), jnp.int32)
 
     def cond(s):
@@ -235,21 +237,7 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         next_id = jnp.where(finished, s["next_ray"] + rank, s["ray_id"])
         next_id = jnp.where(finished & (next_id >= n), _NO_RAY, next_id)
         new["next_ray"] = s["next_ray"] + jnp.sum(finished.astype(jnp.int32))
-        fresh_ray, fresh_trav = fresh(next_id)
-        reset = {
-            "ray_id": next_id,
-            "ray": fresh_ray,
-            "trav": fresh_trav,
-            "trav_done": jnp.zeros(lanes, bool),
-            "cursor": zeros_i,
-            "end": zeros_i,
-            "best_t": fresh_ray.tmax,
-            "best_id": jnp.full(lanes, -1, jnp.int32),
-            "best_row": jnp.full(lanes, -1, jnp.int32),
-            "sp": zeros_i,
-        }
-        if counters:
-            reset["count"] = jnp.zeros((lanes, 3), jnp.int32)
+        reset = fresh(next_id)
         for key, value in reset.items():
             new[key] = _select(finished, value, new[key])
         return new
