@@ -14,22 +14,12 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import time
 
 import accel
 import jrt
+from benchmarks.common import best_time, write_record
 from benchmarks.peers import EmbreePeer
-from benchmarks.records import write_record
 from jrt.raysets import camera_set, incoherent_set
-
-
-def best_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def main(argv=None) -> dict:

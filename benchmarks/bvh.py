@@ -28,18 +28,9 @@ import numpy as np
 
 import accel
 import jrt
+from benchmarks.common import best_time, write_record
 from benchmarks.peers import EmbreePeer
-from benchmarks.records import write_record
 from jrt.raysets import camera_set, incoherent_set
-
-
-def _best(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def _ready(x):
@@ -102,13 +93,13 @@ def main(argv=None) -> dict:
         start = time.perf_counter()
         hits = jrt_closest()
         first = time.perf_counter() - start
-        t_jrt = _best(jrt_closest, args.repeats)
-        t_emb = _best(lambda o=o, d=d: embree.closest_hit(o, d, threads=cores), args.repeats)
+        t_jrt = best_time(jrt_closest, args.repeats)
+        t_emb = best_time(lambda o=o, d=d: embree.closest_hit(o, d, threads=cores), args.repeats)
         ob, db = oj[: args.brute_rays], dj[: args.brute_rays]
         brute_run = lambda ob=ob, db=db: _ready(  # noqa: E731
             jrt.closest_hit(brute, ob, db, kernel=args.kernel))
         brute_run()
-        t_brute = _best(brute_run, 1) * n / len(ob)
+        t_brute = best_time(brute_run, 1) * n / len(ob)
         _, counts = jrt.closest_hit(bvh, oj, dj, kernel=args.kernel, lanes=args.lanes,
                                     counters=True)
         counts = {k: float(np.asarray(v).mean()) for k, v in counts._asdict().items()}
@@ -129,8 +120,8 @@ def main(argv=None) -> dict:
         occ_run = lambda oj=oj, dj=dj, tj=tj: _ready(  # noqa: E731
             jrt.occluded(bvh, oj, dj, tj, kernel=args.kernel, lanes=args.lanes))
         occ_run()
-        t_occ = _best(occ_run, args.repeats)
-        t_emb_occ = _best(lambda o=o, d=d, tm=tmax: embree.occluded(o, d, tm, threads=cores),
+        t_occ = best_time(occ_run, args.repeats)
+        t_emb_occ = best_time(lambda o=o, d=d, tm=tmax: embree.occluded(o, d, tm, threads=cores),
                           args.repeats)
         rows += [("occluded", "embree", t_emb_occ, ""), ("occluded", "jrt bvh", t_occ, "")]
         for query, method, seconds, notes in rows:

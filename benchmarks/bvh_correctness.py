@@ -17,7 +17,7 @@ import numpy as np
 
 import accel
 import jrt
-from benchmarks.records import write_record
+from benchmarks.common import write_record
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 

@@ -18,7 +18,7 @@ import numpy as np
 
 import accel
 import jrt
-from benchmarks.records import write_record
+from benchmarks.common import write_record
 
 
 def main(argv=None) -> dict:
