@@ -1,4 +1,4 @@
-"""Shared fixtures: the camel (found through jrt's resolver) and its brute-force structure."""
+"""Shared fixtures: the camel (found through jrt's resolver), its brute-force and BVH structures."""
 
 from __future__ import annotations
 
@@ -22,6 +22,17 @@ def camel():
 @pytest.fixture(scope="session")
 def camel_brute(camel):
     return accel.build("brute", camel.vertices, camel.faces)
+
+
+@pytest.fixture(scope="session")
+def camel_bvh(camel):
+    return accel.build("bvh", camel.vertices, camel.faces)
+
+
+@pytest.fixture(params=["brute", "bvh"])
+def structure(request):
+    """The camel's brute-force structure, then its BVH: a test over both."""
+    return request.getfixturevalue({"brute": "camel_brute", "bvh": "camel_bvh"}[request.param])
 
 
 @pytest.fixture(scope="session")

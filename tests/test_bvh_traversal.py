@@ -77,11 +77,6 @@ def assert_same_hits(got: dict, want: dict, origins=None, directions=None, conte
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="session")
-def camel_bvh(camel):
-    return accel.build("bvh", camel.vertices, camel.faces)
-
-
 @pytest.fixture(scope="module")
 def camel_rays(camel):
     # The same count in both sets, so that they share every compiled function.
@@ -385,14 +380,21 @@ def xfail_if_sliver_bug(bad, kernel, structure, origins, directions, tmax):
         pytest.xfail(f"{SLIVER_BUG}; {kernel}, rays {np.flatnonzero(bad).tolist()}")
 
 
-@PROPERTY
-@given(case=soups())
-def test_soup_closest_hit_matches_brute(case):
+def soup_structures(case):
+    """A soup's build parameters and structures (unpadded brute, fixed-shape BVH,
+    fixed-shape brute), a t scale beyond the soup, its rays and random generator."""
     vertices, faces, params, origins, directions, rng = case
     unpadded = accel.build("brute", vertices, faces)
     bvh = fixed_shape_bvh(accel.build("bvh", vertices, faces, **params))
     brute = fixed_shape_brute(unpadded)
     scale = float(np.abs(vertices).max()) * 4
+    return params, unpadded, bvh, brute, scale, origins, directions, rng
+
+
+@PROPERTY
+@given(case=soups())
+def test_soup_closest_hit_matches_brute(case):
+    params, unpadded, bvh, brute, scale, origins, directions, rng = soup_structures(case)
     for kernel in KERNELS:
         want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
         tmax = np.where(rng.random(N_RAYS) < 0.75, np.float32(np.inf),
@@ -409,11 +411,7 @@ def test_soup_closest_hit_matches_brute(case):
 @PROPERTY
 @given(case=soups())
 def test_soup_occluded_matches_brute(case):
-    vertices, faces, params, origins, directions, rng = case
-    unpadded = accel.build("brute", vertices, faces)
-    bvh = fixed_shape_bvh(accel.build("bvh", vertices, faces, **params))
-    brute = fixed_shape_brute(unpadded)
-    scale = float(np.abs(vertices).max()) * 4
+    params, unpadded, bvh, brute, scale, origins, directions, rng = soup_structures(case)
     for kernel in KERNELS:
         # (The closest hits without tmax give the interesting cut-off points.)
         t = np.asarray(jrt.closest_hit(bvh, origins, directions, kernel=kernel, lanes=64).t)

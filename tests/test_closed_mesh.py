@@ -17,7 +17,6 @@ import igl
 import numpy as np
 import pytest
 
-import accel
 import jrt
 
 PER_FAMILY = 8_000
@@ -65,16 +64,6 @@ def crack_rays(camel):
     for name, (o, _) in families.items():
         assert len(o) > PER_FAMILY // 4, f"too few interior origins for {name}"
     return families
-
-
-@pytest.fixture(scope="module")
-def camel_bvh(camel):
-    return accel.build("bvh", camel.vertices, camel.faces)
-
-
-@pytest.fixture(params=["brute", "bvh"])
-def structure(request):
-    return request.getfixturevalue({"brute": "camel_brute", "bvh": "camel_bvh"}[request.param])
 
 
 @pytest.mark.parametrize("kernel", list(jrt.KERNELS))

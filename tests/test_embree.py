@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import accel
 import jrt
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
@@ -48,16 +47,6 @@ def compare(ours: dict, ref: dict, scene_size: float) -> dict:
         "other_triangle": int((both & (ours["triangle"] != ref["triangle"])).sum()),
         "max_dt": float(dt[both].max()) if both.any() else 0.0,
     }
-
-
-@pytest.fixture(scope="module")
-def camel_bvh(camel):
-    return accel.build("bvh", camel.vertices, camel.faces)
-
-
-@pytest.fixture(params=["brute", "bvh"])
-def structure(request):
-    return request.getfixturevalue({"brute": "camel_brute", "bvh": "camel_bvh"}[request.param])
 
 
 @pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
