@@ -48,14 +48,16 @@ def make(leaf_bits: int) -> Traversal:
         def boxes(ray, rows):
             row = rows.T
             return (*box_interval(ray, row[0:3], row[3:6]),
-                    *box_interval(ray, row[6:9], row[9:12]))
+                    *box_interval(ray, row[6:9], row[9:12]),
+                    lax.bitcast_convert_type(row[12], jnp.int32),
+                    lax.bitcast_convert_type(row[13], jnp.int32))
 
-        near0, far0, near1, far1 = computed_once(jnp.any(interior), boxes, ray, rows)
-        row = rows.T
+        # The child references come out of the same boundary: read from the gathered
+        # rows by the step's selects, they made every lane's read a strided one.
+        near0, far0, near1, far1, child0, child1 = computed_once(
+            jnp.any(interior), boxes, ray, rows)
         enter0 = interior & (near0 <= far0) & (near0 <= best_t)
         enter1 = interior & (near1 <= far1) & (near1 <= best_t)
-        child0 = lax.bitcast_convert_type(row[12], jnp.int32)
-        child1 = lax.bitcast_convert_type(row[13], jnp.int32)
         both = enter0 & enter1
         one = enter0 | enter1
         # The nearer entered child goes first (child 0 on a tie).

@@ -50,7 +50,6 @@ from jrt.kernels import get_kernel
 
 DEFAULT_LANES = 2048
 DEFAULT_STACK_SIZE = 64
-DEFAULT_STEPS_PER_ITERATION = 1
 _NO_RAY = np.iinfo(np.int32).max
 
 
@@ -111,20 +110,26 @@ class Counters(NamedTuple):
     leaves: jax.Array
 
 
-def _inverse(d):
-    # A zero component gives ±inf (its sign kept from ±0.0); slab tests handle it.
-    return 1.0 / d
+def _pack_rays(origins, directions, tmax):
+    """Rays packed as rows [n, 10]: origin, direction, 1/direction, tmax.
+
+    The reciprocal is taken once per ray here (a zero component gives ±inf, its sign kept
+    from ±0.0; the slab tests handle it), not on every step.
+    """
+    return jnp.concatenate([origins, directions, 1.0 / directions, tmax[:, None]], axis=1)
 
 
-def _load_rays(rays, ids, n):
-    """The rays ``ids`` from the packed [n, 7] array; ids >= n give a dummy ray."""
+def _lane_rays(rays, ids, n):
+    """The lanes' rays, gathered from the packed rows by ray id (ids >= n: a dummy ray).
+
+    Rays are gathered on every iteration rather than carried in the loop state: a row
+    gather costs less than the selects that refilling ten carried fields would.
+    """
     r = rays[jnp.minimum(ids, n - 1)]
-    o, d, tm = r[:, 0:3], r[:, 3:6], r[:, 6]
     # Box tests run on [L] vectors, one per axis: XLA:CPU vectorises elementwise code
     # along the lanes only when no small trailing axis (of 3) is broadcast.
-    inv = _inverse(d)
-    return Ray(o, d, tuple(o[:, k] for k in range(3)), tuple(inv[:, k] for k in range(3)),
-               jnp.where(ids < n, tm, -jnp.inf))
+    return Ray(r[:, 0:3], r[:, 3:6], tuple(r[:, k] for k in range(3)),
+               tuple(r[:, 6 + k] for k in range(3)), r[:, 9])
 
 
 def _select(mask, new, old):
@@ -133,8 +138,16 @@ def _select(mask, new, old):
 
 
 def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, stack_size,
-               counters, references, steps_per_iteration):
-    """All rays of ``rays`` [n, 7] (origin, direction, tmax) through one device's lanes."""
+               counters, references):
+    """All rays of ``rays`` [n, 10] (see :func:`_pack_rays`) through one device's lanes.
+
+    One iteration: refill the lanes that finished (write their winner, take the next
+    rays), gather every lane's ray, start the refilled lanes, one traversal step for
+    lanes whose leaf is done, one triangle test for lanes with leaf rows left. The loop
+    carries as few arrays as it can: XLA:CPU runs each elementwise update of a carried
+    array as its own pass over the lanes, and those passes, not the arithmetic, bound
+    the iteration.
+    """
     fn = get_kernel(kernel)
     n = rays.shape[0]
     lanes = max(1, min(lanes, n))
@@ -143,17 +156,14 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     triangle_ids = arrays["triangle_ids"]
     lane_index = jnp.arange(lanes, dtype=jnp.int32)
 
-    def fresh(ids):
-        """The per-ray part of a lane's state for rays ``ids`` (>= n: no ray)."""
-        ray = _load_rays(rays, ids, n)
+    def fresh():
+        """The per-ray part of a lane's state, for a lane that takes a new ray."""
         lane = {
-            "ray_id": ids,
-            "ray": ray,
-            "trav": traversal.start(arrays, ray),
             "trav_done": jnp.zeros(lanes, bool),
             "cursor": jnp.zeros(lanes, jnp.int32),
             "end": jnp.zeros(lanes, jnp.int32),
-            "best_t": ray.tmax,
+            # best_t is meaningful only once best_id >= 0; until then the ray's tmax bounds.
+            "best_t": jnp.full(lanes, jnp.inf, jnp.float32),
             "best_id": jnp.full(lanes, -1, jnp.int32),
             "best_row": jnp.full(lanes, -1, jnp.int32),
             "sp": jnp.zeros(lanes, jnp.int32),
@@ -163,23 +173,81 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         return lane
 
     state = {
-        **fresh(lane_index),
+        **fresh(),
+        "ray_id": lane_index,
+        "renewed": jnp.ones(lanes, bool),
+        "trav": traversal.start(arrays, _lane_rays(rays, lane_index, n)),
         "stack": jnp.zeros((lanes, stack_size, width), jnp.int32),
         "top": jnp.zeros((lanes, width), jnp.int32),
         "next_ray": jnp.int32(lanes),
         "overflow": jnp.zeros((), bool),
-        # The winning row of every ray (-1: none yet or a miss).
+        # The winning row of every ray (-1: none yet or a miss), and lanes' spare slots.
         "out": jnp.full(n + lanes, -1, jnp.int32),
     }
     if counters:
         state["out_count"] = jnp.zeros((n + lanes, 3), jnp.int32)
 
-    def cond(s):
-        return jnp.any(s["ray_id"] < n)
+    def finished(s):
+        active = s["ray_id"] < n
+        done = active & s["trav_done"] & (s["cursor"] >= s["end"])
+        if any_hit:
+            done |= active & (s["best_id"] >= 0)
+        return done
 
-    def test_phase(s):
+    def refill(s):
+        """Finished lanes write their winner and take the next rays, in order."""
+        done = finished(s)
+        # Lanes with nothing to write aim at their own slot past the end (unique indices).
+        target = jnp.where(done, s["ray_id"], n + lane_index)
+        new = dict(s, out=s["out"].at[target].set(s["best_row"], unique_indices=True))
+        if counters:
+            new["out_count"] = s["out_count"].at[target].set(s["count"], unique_indices=True)
+        rank = jnp.cumsum(done.astype(jnp.int32)) - 1
+        next_id = jnp.where(done, s["next_ray"] + rank, s["ray_id"])
+        new["ray_id"] = jnp.where(done & (next_id >= n), _NO_RAY, next_id)
+        new["next_ray"] = s["next_ray"] + jnp.sum(done.astype(jnp.int32))
+        new.update(_select(done, fresh(), {k: s[k] for k in fresh()}))
+        new["renewed"] = done
+        return new
+
+    def best_bound(s, ray):
+        """The distance a hit must beat: the best hit's, or the ray's tmax before one."""
+        return jnp.where(s["best_id"] >= 0, s["best_t"], ray.tmax)
+
+    def step(s, ray):
+        """One traversal step for every lane whose leaf is done, then the new stack top."""
+        stepping = (s["ray_id"] < n) & (s["cursor"] >= s["end"]) & ~s["trav_done"]
+        if any_hit:
+            stepping &= s["best_id"] < 0
+        sp = s["sp"]
+        has_top = sp > 0
+        bound = best_bound(s, ray)
+        # Cull only beyond the tie window: a tied hit with a lower face index may lie there.
+        st = traversal.step(arrays, ray, s["trav"], bound + tie_window(bound), s["top"],
+                            has_top)
+        new_leaf = stepping & (st.leaf_count > 0)
+        push = stepping & st.push
+        pop = stepping & st.pop
+        new = dict(
+            s,
+            trav=_select(stepping, st.state, s["trav"]),
+            trav_done=s["trav_done"] | (stepping & (st.finished | (st.pop & ~has_top))),
+            cursor=jnp.where(new_leaf, st.leaf_first, s["cursor"]),
+            end=jnp.where(new_leaf, st.leaf_first + st.leaf_count, s["end"]),
+            overflow=s["overflow"] | jnp.any(push & (sp >= stack_size)),
+            sp=jnp.clip(sp + push.astype(jnp.int32) - pop.astype(jnp.int32), 0, stack_size))
+        # The push goes to the slot at the old pointer (free unless the step pushed), then
+        # the new top is read: writing before reading spares XLA a copy of the stack.
+        new["stack"] = s["stack"].at[lane_index, jnp.minimum(sp, stack_size - 1)].set(
+            st.entry, unique_indices=True, indices_are_sorted=True)
+        new["top"] = new["stack"][lane_index, jnp.maximum(new["sp"] - 1, 0)]
+        if counters:
+            new["count"] = s["count"] + jnp.stack(
+                [stepping, jnp.zeros_like(stepping), new_leaf], axis=1).astype(jnp.int32)
+        return new
+
+    def test(s, ray):
         """The leaf loop: one triangle test for every lane that has rows left."""
-        ray = s["ray"]
         testing = (s["ray_id"] < n) & (s["cursor"] < s["end"])
         slot = jnp.where(testing, s["cursor"], 0)
         row = references[slot] if references is not None else slot
@@ -199,97 +267,15 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
             new["count"] = s["count"] + jnp.stack([zero, testing, zero], 1).astype(jnp.int32)
         return new
 
-    def step_phase(s):
-        """One traversal step for every lane whose leaf is done."""
-        stepping = _can_step(s)
-        sp = s["sp"]
-        has_top = sp > 0
-        # Cull only beyond the tie window: a tied hit with a lower face index may lie there.
-        cull_t = s["best_t"] + tie_window(s["best_t"])
-        st = traversal.step(arrays, s["ray"], s["trav"], cull_t, s["top"], has_top)
-        new_leaf = stepping & (st.leaf_count > 0)
-        push = stepping & st.push
-        pop = stepping & st.pop
-        new = dict(
-            s,
-            trav=_select(stepping, st.state, s["trav"]),
-            trav_done=s["trav_done"] | (stepping & (st.finished | (st.pop & ~has_top))),
-            cursor=jnp.where(new_leaf, st.leaf_first, s["cursor"]),
-            end=jnp.where(new_leaf, st.leaf_first + st.leaf_count, s["end"]),
-            overflow=s["overflow"] | jnp.any(push & (sp >= stack_size)),
-            sp=jnp.clip(sp + push.astype(jnp.int32) - pop.astype(jnp.int32), 0, stack_size),
-            entry=st.entry)
-        if counters:
-            new["count"] = s["count"] + jnp.stack(
-                [stepping, jnp.zeros_like(stepping), new_leaf], axis=1).astype(jnp.int32)
-        return new
-
-    def refill_phase(s):
-        """Finished lanes write their winner and take the next rays, in order."""
-        finished = _finished(s)
-        new = dict(s)
-        # Lanes with nothing to write aim at their own slot past the end (unique indices).
-        new["target"] = jnp.where(finished, s["ray_id"], n + lane_index)
-        new["result"] = s["best_row"]
-        if counters:
-            new["result_count"] = s["count"]
-        rank = jnp.cumsum(finished.astype(jnp.int32)) - 1
-        next_id = jnp.where(finished, s["next_ray"] + rank, s["ray_id"])
-        next_id = jnp.where(finished & (next_id >= n), _NO_RAY, next_id)
-        new["next_ray"] = s["next_ray"] + jnp.sum(finished.astype(jnp.int32))
-        reset = fresh(next_id)
-        for key, value in reset.items():
-            new[key] = _select(finished, value, new[key])
-        return new
-
-    def _can_step(s):
-        can = (s["ray_id"] < n) & (s["cursor"] >= s["end"]) & ~s["trav_done"]
-        if any_hit:
-            can &= s["best_id"] < 0
-        return can
-
-    def _finished(s):
-        active = s["ray_id"] < n
-        done = active & s["trav_done"] & (s["cursor"] >= s["end"])
-        if any_hit:
-            done |= active & (s["best_id"] >= 0)
-        return done
-
-    big = ("stack", "out", "out_count")
-
-    def step_and_stack(s):
-        small = {k: v for k, v in s.items() if k not in big}
-        sp_before = s["sp"]
-        small = step_phase(small)
-        # The push goes to the slot at the old pointer (free unless the step pushed), then
-        # the new top is read: writing before reading spares XLA a copy of the stack.
-        stack = s["stack"].at[lane_index, jnp.minimum(sp_before, stack_size - 1)].set(
-            small.pop("entry"), unique_indices=True, indices_are_sorted=True)
-        new = dict(s, **small, stack=stack)
-        new["top"] = stack[lane_index, jnp.maximum(new["sp"] - 1, 0)]
-        return new
-
     def body(s):
-        # ``steps_per_iteration`` traversal steps for lanes whose leaf is done, then one
-        # triangle test for lanes with leaf rows left, then the refill of finished lanes.
+        s = refill(s)
+        ray = _lane_rays(rays, s["ray_id"], n)
+        s["trav"] = _select(s["renewed"], traversal.start(arrays, ray), s["trav"])
         # Lanes step far more often than they test (5-15 steps per ray on the camel
-        # against 0.5-1.6 tests), and every phase costs all lanes, so tests (and refills)
-        # run less often than steps.
-        for _ in range(steps_per_iteration):
-            s = step_and_stack(s)
-        small = {k: v for k, v in s.items() if k not in big}
-        small = refill_phase(test_phase(small))
-        target = small.pop("target")
-        result = small.pop("result")
-        new = dict(s, **small)
-        new["out"] = s["out"].at[target].set(result, unique_indices=True)
-        if counters:
-            new["out_count"] = s["out_count"].at[target].set(small.pop("result_count"),
-                                                             unique_indices=True)
-            new.pop("result_count")
-        return new
+        # against 0.5-1.6 tests), but a phase costs all lanes whichever lanes use it.
+        return test(step(s, ray), ray)
 
-    s = lax.while_loop(cond, body, state)
+    s = lax.while_loop(lambda s: jnp.any(s["ray_id"] < n), body, state)
     hits = winner_hits(fn, rays[:, 0:3], rays[:, 3:6], triangles, triangle_ids, s["out"][:n])
     count = s["out_count"][:n] if counters else None
     return hits, count, s["overflow"]
@@ -301,12 +287,11 @@ def cpu_devices() -> list:
 
 
 @functools.partial(jax.jit, static_argnames=(
-    "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices",
-    "steps_per_iteration"))
+    "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices"))
 def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, lanes,
-              stack_size, counters, devices, steps_per_iteration):
+              stack_size, counters, devices):
     n = origins.shape[0]
-    rays = jnp.concatenate([origins, directions, tmax[:, None]], axis=1)
+    rays = _pack_rays(origins, directions, tmax)
     if arrays["triangles"].shape[0] == 0:
         # No triangle at all (an empty or all-degenerate mesh): one zero triangle, which
         # no kernel ever hits, keeps the leaf loop's gathers in range.
@@ -315,8 +300,7 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
     references = arrays.get("references")
     run = functools.partial(
         _run_lanes, traversal, kernel=kernel, any_hit=any_hit, lanes=lanes,
-        stack_size=stack_size, counters=counters, references=references,
-        steps_per_iteration=steps_per_iteration)
+        stack_size=stack_size, counters=counters, references=references)
     if devices is None or len(devices) == 1 or n < 2 * len(devices):
         hits, count, overflow = run(arrays, rays)
         return hits, count, overflow
@@ -324,11 +308,12 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
     per = -(-n // k)
     pad = per * k - n
     # Padding rays have tmax -inf: they test nothing and are cut off below.
-    filler = jnp.tile(jnp.asarray([[0, 0, 0, 0, 0, 1, -jnp.inf]], rays.dtype), (pad, 1))
+    filler = jnp.tile(_pack_rays(jnp.zeros((1, 3)), jnp.asarray([[0.0, 0.0, 1.0]]),
+                                 jnp.full((1,), -jnp.inf)).astype(rays.dtype), (pad, 1))
     # Ray i goes to device i mod k (interleaved, not in blocks): neighbouring rays cost
     # alike (a camera's rows above the mesh are cheap misses), and blocks left one device
     # idle while the other traced the mesh (measured 1.8x on camera rays, 2 devices).
-    rays = jnp.concatenate([rays, filler]).reshape(per, k, 7).transpose(1, 0, 2)
+    rays = jnp.concatenate([rays, filler]).reshape(per, k, rays.shape[1]).transpose(1, 0, 2)
     mesh = Mesh(np.asarray(devices), ("rays",))
 
     def shard(arrays, rays):
@@ -351,8 +336,7 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
 
 def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel: str,
              any_hit: bool, lanes: int = DEFAULT_LANES, stack_size: int = DEFAULT_STACK_SIZE,
-             counters: bool = False, devices=None,
-             steps_per_iteration: int = DEFAULT_STEPS_PER_ITERATION):
+             counters: bool = False, devices=None):
     """Runs every ray through ``traversal``: (hits, counters or None, overflow flag)."""
     if origins.shape[0] == 0:
         empty = Hits(jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.int32),
@@ -361,7 +345,7 @@ def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel:
     devs = tuple(devices) if devices is not None else tuple(cpu_devices())
     return _traverse(arrays, origins, directions, tmax, traversal=traversal, kernel=kernel,
                      any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters,
-                     devices=devs, steps_per_iteration=steps_per_iteration)
+                     devices=devs)
 
 
 #: Relative widening of every box test. Ize ("Robust BVH ray traversal", JCGT 2013)
