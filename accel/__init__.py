@@ -7,19 +7,15 @@ returns (:class:`accel.structure.Structure`) is what ``jrt.closest_hit`` and
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import importlib
 
 import numpy as np
 
-from accel import brute, bvh
 from accel.structure import Structure
 
-_BUILDERS: dict[str, Callable[..., Structure]] = {
-    "brute": brute.build,
-    "bvh": bvh.build,
-}
-
-NAMES: tuple[str, ...] = tuple(_BUILDERS)
+#: The structures, each a module ``accel.<name>`` with ``build(vertices, faces, **params)``
+#: (and, for the traversal engine, ``jrt.<name>`` with ``traversal(structure)``).
+NAMES: tuple[str, ...] = ("brute", "bvh")
 
 
 def build(name: str, vertices: np.ndarray, faces: np.ndarray, **params) -> Structure:
@@ -31,7 +27,7 @@ def build(name: str, vertices: np.ndarray, faces: np.ndarray, **params) -> Struc
         faces: int [F, 3] vertex indices.
         **params: the builder's own parameters.
     """
-    if name not in _BUILDERS:
+    if name not in NAMES:
         raise ValueError(f"unknown acceleration structure {name!r}; allowed: {', '.join(NAMES)}")
     vertices = np.asarray(vertices)
     faces = np.asarray(faces)
@@ -39,7 +35,7 @@ def build(name: str, vertices: np.ndarray, faces: np.ndarray, **params) -> Struc
         raise ValueError(f"vertices must have shape [V, 3], got {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces must have shape [F, 3], got {faces.shape}")
-    return _BUILDERS[name](vertices, faces, **params)
+    return importlib.import_module(f"accel.{name}").build(vertices, faces, **params)
 
 
 __all__ = ["NAMES", "Structure", "build"]

@@ -43,7 +43,7 @@ import time
 
 import numpy as np
 
-from accel.geometry import degenerate_mask, triangle_vertices
+from accel.geometry import degenerate_mask, leaf_bits_for, leaf_references, triangle_vertices
 from accel.structure import Structure
 
 #: Defaults: 16 bins (Wald 2007 found 16-32 bins within a few percent of a full SAH
@@ -284,13 +284,13 @@ def _flatten(tris, ids, order, node_lo, node_hi, node_first, node_count, node_de
         left[np.concatenate(links[0])] = np.concatenate(links[1])
     interior = left >= 0
     max_count = int(count[~interior].max()) if total else 0
-    leaf_bits = max(int(max_count).bit_length(), 1)
-    if (tris.shape[0] + 1) << leaf_bits >= 2**31:
-        raise ValueError(f"bvh: {tris.shape[0]} triangles with leaves of {max_count} do not "
-                         "fit the 31-bit leaf references")
+    try:
+        leaf_bits = leaf_bits_for(max_count, tris.shape[0])
+    except ValueError as error:
+        raise ValueError(f"bvh: {error}") from None
     # Interior rows: breadth-first order of the interior nodes; the root is row 0.
     row_of = np.cumsum(interior) - 1
-    ref = np.where(interior, row_of, ~((first << leaf_bits) | count))
+    ref = np.where(interior, row_of, leaf_references(first, count, leaf_bits))
     if interior[0]:
         parents = np.flatnonzero(interior)
         kids = np.stack([left[parents], left[parents] + 1], axis=1)

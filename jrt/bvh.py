@@ -27,6 +27,11 @@ def _as_entry(ref, t):
     return jnp.stack([ref, lax.bitcast_convert_type(t, jnp.int32)], axis=1)
 
 
+def traversal(structure) -> Traversal:
+    """The engine traversal of a BVH built by ``accel.bvh``."""
+    return make(structure.layout_value("leaf_bits"))
+
+
 @functools.cache
 def make(leaf_bits: int) -> Traversal:
     """The BVH's :class:`jrt.engine.Traversal` for leaf references of ``leaf_bits``."""

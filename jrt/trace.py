@@ -11,23 +11,29 @@ direction's length.
 
 from __future__ import annotations
 
+import importlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+import accel
 from accel.structure import Structure
-from jrt import brute, bvh, engine
+from jrt import brute, engine
 from jrt import structure as _structure  # noqa: F401  (registers Structure as a pytree)
 from jrt.engine import Counters, StackOverflowError
 from jrt.hits import Hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
 
-#: Structure kind -> its engine traversal (a function of the structure's static layout).
-TRAVERSALS = {
-    "bvh": lambda s: bvh.make(s.layout_value("leaf_bits")),
-}
-KINDS = ("brute", *TRAVERSALS)
+#: Every structure kind. Each but brute force is stepped by the engine: module
+#: ``jrt.<kind>`` gives ``traversal(structure) -> jrt.engine.Traversal``.
+KINDS = accel.NAMES
+
+
+def traversal_of(structure: Structure) -> engine.Traversal:
+    """The engine traversal of a structure (from its module ``jrt.<kind>``)."""
+    return importlib.import_module(f"jrt.{structure.kind}").traversal(structure)
 
 
 def _check_rays(origins, directions, tmax):
@@ -83,7 +89,7 @@ def _overflow_callback(overflow, *, stack_size):
 def _engine_query(structure, origins, directions, tmax, kernel, any_hit, counters, lanes,
                   stack_size):
     _check_options(lanes, stack_size)
-    traversal = TRAVERSALS[structure.kind](structure)
+    traversal = traversal_of(structure)
     hits, count, overflow = engine.traverse(
         traversal, structure.arrays, origins, directions, tmax, kernel=kernel,
         any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters)
