@@ -1,4 +1,4 @@
-"""Shared fixtures: the camel (found through jrt's resolver), its brute-force and BVH structures."""
+"""Shared fixtures: the camel (found through jrt's resolver) and its structures, built once."""
 
 from __future__ import annotations
 
@@ -25,14 +25,27 @@ def camel_brute(camel):
 
 
 @pytest.fixture(scope="session")
-def camel_bvh(camel):
-    return accel.build("bvh", camel.vertices, camel.faces)
+def camel_bvh(camel_structures):
+    return camel_structures("bvh")
 
 
-@pytest.fixture(params=["brute", "bvh"])
-def structure(request):
-    """The camel's brute-force structure, then its BVH: a test over both."""
-    return request.getfixturevalue({"brute": "camel_brute", "bvh": "camel_bvh"}[request.param])
+@pytest.fixture(scope="session")
+def camel_structures(camel):
+    """name -> the camel's structure of that kind, each built once per session."""
+    built = {}
+
+    def get(name):
+        if name not in built:
+            built[name] = accel.build(name, camel.vertices, camel.faces)
+        return built[name]
+
+    return get
+
+
+@pytest.fixture(params=accel.NAMES)
+def structure(request, camel_structures):
+    """The camel under every structure, brute force first: a test over all of them."""
+    return camel_structures(request.param)
 
 
 @pytest.fixture(scope="session")
