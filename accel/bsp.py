@@ -3,7 +3,7 @@
 
 Like the kd-tree (``accel.kdtree``) a node's region is cut in two and a triangle is
 referenced by every leaf whose region it reaches, but the planes ``n . x = c`` may have any
-orientation. Candidates per node (Ize et al., section 3: triangle planes and a few fixed
+orientation. Candidates per node (as Ize et al.: triangle planes and a few fixed
 orientations):
 
 - the 3 axis normals, at every node;
@@ -31,6 +31,14 @@ half-space iff one of its vertices lies in it, so every triangle that reaches a 
 region is referenced there (straddlers on both sides). The margin scales with the
 region's magnitude, not just the plane's offset, so that a plane through the origin still
 absorbs the rounding of hit points far from it and of a near-parallel ray's n . d.
+
+On the camel the SAH picks an oblique plane at some 450 of 97,700 nodes (general planes at
+every node of 16 or more references were picked at 50,000, and traced slower: see the
+defaults below).
+
+**Cost of the build**: per level, O(references x orientations) NumPy passes (the extents
+along the fixed orientations are computed once per triangle; the binning works on float32
+copies of them, the sides are decided in float64), at most ``max_depth`` levels.
 
 Layout (``nodes`` float32 [M, 8], 32 bytes a row, one row per *interior* node, both child
 references in the parent as ``accel.bvh`` and ``accel.kdtree``):

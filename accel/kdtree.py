@@ -15,7 +15,7 @@ for a leaf. A node becomes a leaf when no candidate beats the leaf, when it hold
 ``max_leaf_size`` references, or at depth ``max_depth``, by default round(8 + 1.3 log2 N)
 (pbrt's rule: Pharr, Jakob & Humphreys, *Physically Based Rendering*, 3rd ed., section 4.4).
 
-**Perfect splits** (Wald & Havran, section 4.3; Havran's thesis 2000): every reference
+**Perfect splits** (Wald & Havran; Havran's thesis 2000): every reference
 carries its triangle clipped to the node's (widened, below) cell, a convex polygon of at
 most 9 vertices kept in a pool, and that polygon's bounding box; the SAH counts N_L and
 N_R from those boxes, and a reference that straddles the chosen plane has its polygon
@@ -41,7 +41,7 @@ bounds, so a polygon always holds the part of its triangle in the node's widened
 the test is exact (``tests/test_kdtree.py`` checks it against the separating-axis test,
 ``accel.geometry.triangles_overlap_boxes``, leaf by leaf). Triangles lying *in* the plane
 (clipped box with min == max == the plane on the split axis) go to one side only, the one
-of lower SAH cost (Wald & Havran, section 4.4, ties to the right as their Algorithm 2).
+of lower SAH cost (Wald & Havran's rule; the left side only when strictly cheaper).
 That is still exact: a ray hits such a triangle at its crossing of the plane, where the
 traversal's intervals for the two children overlap (``jrt.planes``), so the leaf that
 holds it is visited. Two leaf children of a node get adjacent slots in ``references``
@@ -426,7 +426,7 @@ def build(
         x_lo, x_hi = rlo[sel, a], rhi[sel, a]
         planar = (x_lo == sp[r]) & (x_hi == sp[r])
         member = [(x_lo <= upper0[r]) & ~planar, (x_hi >= lower1[r]) & ~planar]
-        # Planar references: the side of lower cost (Wald & Havran, section 4.4).
+        # Planar references: the side of lower cost (Wald & Havran).
         n_planar = np.bincount(r[planar], minlength=m)
         n0 = np.bincount(r[member[0]], minlength=m)
         n1 = np.bincount(r[member[1]], minlength=m)
