@@ -15,7 +15,7 @@ from accel.structure import Structure
 
 #: The structures, each a module ``accel.<name>`` with ``build(vertices, faces, **params)``
 #: (and, for the traversal engine, ``jrt.<name>`` with ``traversal(structure)``).
-NAMES: tuple[str, ...] = ("brute", "bvh", "kdtree", "bsp", "grid")
+NAMES: tuple[str, ...] = ("brute", "bvh", "kdtree", "octree", "bsp", "grid")
 
 
 def build(name: str, vertices: np.ndarray, faces: np.ndarray, **params) -> Structure:

@@ -1,0 +1,728 @@
+"""The octree (``accel/octree.py`` built, ``jrt/octree.py`` traced).
+
+Builder: the arrays decoded against the documented layout by an independent walk (a tree of
+interior rows in breadth-first order, eight children each, cells halved at the stored float32
+centres, leaf codes over disjoint slot ranges); the statistics recomputed from the decoded
+cells; and the reference rule checked densely, leaf by leaf against every triangle, with the
+shared exact triangle-box test on the widened leaf cell: a leaf references a triangle if and
+only if the triangle touches the leaf's widened cell.
+
+Traversal: the same hits as brute force, bit for bit, with every kernel: on the camel (20k
+camera and 20k incoherent rays, closest hit and ``occluded``), from inside the closed camel
+(``watertight``: no ray through a crack), and on random soups (hypothesis) with axis-aligned
+flat triangles, triangles lying exactly in the octree's mid-planes and on the root cube's
+faces, rays with ±0.0 direction components, origins exactly on cell faces and at cell
+centres, rays lying in a mid-plane, and soups far from the origin. The soups' trees are
+padded to fixed shapes so that every example runs the same compiled kernels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import test_bvh_traversal as bvh_tests
+import test_closed_mesh as closed_mesh_tests
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from test_bvh_build import expected_ids, half_area, random_mesh, stacked
+from test_bvh_traversal import (
+    CAP,
+    KERNELS,
+    N_RAYS,
+    assert_same_hits,
+    differ,
+    fixed_shape_brute,
+    rays,
+    signed_zeros,
+    soup,
+    tmax_mix,
+    xfail_if_sliver_bug,
+)
+
+import accel
+import jrt
+from accel import octree
+from accel.geometry import triangles_overlap_boxes, widen_boxes
+from accel.structure import Structure
+from jrt.engine import StackOverflowError
+from jrt.trace import as_numpy
+
+STAT_KEYS = {
+    "build_seconds", "max_leaf_size", "max_depth", "triangles", "degenerate_skipped", "cells",
+    "nodes", "interior_cells", "leaves", "empty_leaves", "depth", "references",
+    "references_per_triangle", "references_per_leaf_mean", "references_per_leaf_max",
+    "leaves_over_max_depth", "sah_cost", "bytes",
+}
+PROPERTY = settings(max_examples=20, deadline=None, database=None)
+
+# The camel's ray sets as tests/test_bvh_traversal.py makes them, brute force's hits on
+# them computed once for this module, and the crack rays of tests/test_closed_mesh.py.
+camel_rays = bvh_tests.camel_rays
+crack_rays = closed_mesh_tests.crack_rays
+_BRUTE: dict = {}
+
+
+@pytest.fixture(scope="module")
+def brute_hits(camel_brute, camel_rays):
+    def get(kernel, ray_set):
+        if (kernel, ray_set) not in _BRUTE:
+            origins, directions = camel_rays[ray_set]
+            _BRUTE[kernel, ray_set] = as_numpy(
+                jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
+        return _BRUTE[kernel, ray_set]
+
+    return get
+
+
+@pytest.fixture(scope="module")
+def camel_octree(camel):
+    return accel.build("octree", camel.vertices, camel.faces)
+
+
+# ---------------------------------------------------------------------------------------------
+# An independent decoder of the layout
+# ---------------------------------------------------------------------------------------------
+
+
+def decode(structure) -> dict:
+    """Walk the tree level by level from row 0, asserting its shape on the way.
+
+    Returns the interior cells' boxes and depths, and the leaves' boxes, depths, slot
+    ranges and references (float64 boxes: a child is its parent's box cut at the parent's
+    stored float32 centre, the root is ``centre +- half`` evaluated in float32).
+    """
+    nodes = np.asarray(structure["nodes"])
+    assert nodes.dtype == np.float32 and nodes.ndim == 2 and nodes.shape[1] == 12
+    refs = nodes.view(np.int32)[:, 4:12]
+    bits = structure.layout_value("leaf_bits")
+    m = nodes.shape[0]
+    assert m >= 1, "the root is always an interior row"
+    centre, half = nodes[0, :3], nodes[0, 3]
+    rows = np.zeros(1, np.int64)
+    lo = (centre - half).astype(np.float64)[None]
+    hi = (centre + half).astype(np.float64)[None]
+    seen = np.zeros(m, np.int64)
+    seen[0] = 1
+    interior = {"lo": [], "hi": [], "depth": [], "row": []}
+    leaves = {"lo": [], "hi": [], "depth": [], "ref": []}
+    bit = ((np.arange(8)[:, None] >> np.arange(3)) & 1).astype(bool)
+    depth = 0
+    while rows.size:
+        interior["lo"].append(lo)
+        interior["hi"].append(hi)
+        interior["depth"].append(np.full(rows.size, depth))
+        interior["row"].append(rows)
+        c = nodes[rows, :3].astype(np.float64)
+        # Below the root (split at its stored centre), a cell's centre is the float32
+        # midpoint of its faces.
+        if depth:
+            np.testing.assert_array_equal(nodes[rows, :3], ((lo + hi) / 2).astype(np.float32))
+        np.testing.assert_array_equal(nodes[rows, 3], np.float32(half / 2.0**depth))
+        child_lo = np.where(bit[None], c[:, None], lo[:, None]).reshape(-1, 3)
+        child_hi = np.where(bit[None], hi[:, None], c[:, None]).reshape(-1, 3)
+        child_ref = refs[rows].reshape(-1).astype(np.int64)
+        inner = child_ref >= 0
+        assert (child_ref[inner] > np.repeat(rows, 8)[inner]).all(), "not breadth first"
+        assert (child_ref[inner] < m).all()
+        seen[child_ref[inner]] += 1
+        leaves["lo"].append(child_lo[~inner])
+        leaves["hi"].append(child_hi[~inner])
+        leaves["depth"].append(np.full((~inner).sum(), depth + 1))
+        leaves["ref"].append(child_ref[~inner])
+        rows, lo, hi = child_ref[inner], child_lo[inner], child_hi[inner]
+        depth += 1
+    assert (seen == 1).all(), "every interior row is referenced exactly once"
+    out = {k: np.concatenate(v) for k, v in interior.items()}
+    out = {"interior_" + k: v for k, v in out.items()}
+    out.update({"leaf_" + k: np.concatenate(v) for k, v in leaves.items()})
+    code = ~out["leaf_ref"]
+    out["leaf_first"], out["leaf_count"] = code >> bits, code & ((1 << bits) - 1)
+    empty = out["leaf_count"] == 0
+    assert (out["leaf_ref"][empty] == -1).all(), "an empty leaf is always -1"
+    return out
+
+
+def leaf_of_slots(decoded, slots: int) -> np.ndarray:
+    """The leaf owning each slot of ``references``, asserting the ranges tile [0, R)."""
+    first, count = decoded["leaf_first"], decoded["leaf_count"]
+    owner = np.full(slots, -1, np.int64)
+    leaf = np.repeat(np.arange(first.size), count)
+    slot = np.repeat(first, count) + np.arange(count.sum()) - np.repeat(
+        np.cumsum(count) - count, count)
+    assert slot.size == slots and (slot < slots).all()
+    owner[slot] = leaf
+    assert (owner >= 0).all() and (np.bincount(slot, minlength=slots) <= 1).all()
+    return owner
+
+
+def dense_overlaps(triangles, lo, hi, tri_ids) -> list[np.ndarray]:
+    """For each triangle row in ``tri_ids``: the leaves whose widened cell it touches,
+    every leaf tested (a bounding-box cut first, then the exact separating-axis test)."""
+    wlo, whi = widen_boxes(lo, hi)
+    tri = np.asarray(triangles, np.float64)
+    out = []
+    for t in tri_ids:
+        tlo, thi = tri[t].min(axis=0), tri[t].max(axis=0)
+        near = np.flatnonzero(np.all((tlo <= whi) & (thi >= wlo), axis=1))
+        hit = triangles_overlap_boxes(np.repeat(tri[t][None], near.size, 0), wlo[near],
+                                      whi[near])
+        out.append(near[hit])
+    return out
+
+
+def check_octree(structure, vertices, faces, *, sample=None, rng=None, **params):
+    """The arrays against the documented layout, the reference rule and the stats."""
+    assert structure.kind == "octree"
+    stats = structure.stats
+    assert set(stats) == STAT_KEYS
+    k = params.get("max_leaf_size", octree.DEFAULT_MAX_LEAF_SIZE)
+    ids = expected_ids(vertices, faces)
+    limit = params.get("max_depth") or octree.default_max_depth(ids.size)
+    assert stats["max_leaf_size"] == k and stats["max_depth"] == limit
+    np.testing.assert_array_equal(structure["triangle_ids"], ids)
+    assert structure["triangle_ids"].dtype == np.int32
+    np.testing.assert_array_equal(
+        structure["triangles"], np.asarray(vertices, np.float32)[np.asarray(faces)[ids]])
+    triangles = structure["triangles"]
+    references = np.asarray(structure["references"])
+    assert references.dtype == np.int32
+
+    d = decode(structure)
+    slots = stats["references"]
+    # (A tree without triangles keeps one unused slot for the engine's gather.)
+    assert references.size == max(slots, 1)
+    references = references[:slots]
+    assert ((references >= 0) & (references < len(ids))).all()
+    owner = leaf_of_slots(d, slots)
+    count, depth = d["leaf_count"], d["leaf_depth"]
+    # The root is cubic and contains every triangle.
+    root_lo, root_hi = d["interior_lo"][0], d["interior_hi"][0]
+    if ids.size:
+        assert (triangles.min(axis=(0, 1)) >= root_lo).all()
+        assert (triangles.max(axis=(0, 1)) <= root_hi).all()
+    # Splitting rule: leaves hold at most k unless at the depth limit.
+    assert depth.max() <= limit
+    assert ((count <= k) | (depth == limit)).all()
+    assert stats["leaves_over_max_depth"] == int((count > k).sum())
+    # No triangle referenced twice by one leaf.
+    pairs = owner * (len(ids) + 1) + references
+    assert np.unique(pairs).size == pairs.size
+
+    # The reference rule, densely: leaf L references t iff t touches L's widened cell.
+    rows = np.arange(len(ids)) if sample is None else rng.choice(
+        len(ids), min(sample, len(ids)), replace=False)
+    want = dense_overlaps(triangles, d["leaf_lo"], d["leaf_hi"], rows)
+    for t, leaves in zip(rows, want, strict=True):
+        got = np.sort(owner[references == t])
+        np.testing.assert_array_equal(got, leaves, err_msg=f"triangle row {t}")
+    if ids.size:
+        assert np.unique(references).size == len(ids), "a triangle without a leaf"
+
+    # Statistics, recomputed from the decoded cells.
+    interior_count = d["interior_row"].size
+    assert stats["interior_cells"] == interior_count == structure["nodes"].shape[0]
+    assert stats["leaves"] == count.size
+    assert stats["cells"] == stats["nodes"] == interior_count + count.size
+    assert stats["empty_leaves"] == int((count == 0).sum())
+    assert stats["depth"] == int(depth.max())
+    assert stats["references"] == int(count.sum())
+    assert stats["references_per_leaf_max"] == int(count.max())
+    nonempty = count[count > 0]
+    assert stats["references_per_leaf_mean"] == pytest.approx(
+        nonempty.mean() if nonempty.size else 0.0)
+    assert stats["references_per_triangle"] == pytest.approx(
+        references.size / len(ids) if len(ids) else 0.0)
+    assert stats["triangles"] == len(ids)
+    assert stats["degenerate_skipped"] == len(faces) - len(ids)
+    area = half_area(d["interior_lo"], d["interior_hi"])
+    leaf_area = half_area(d["leaf_lo"], d["leaf_hi"])
+    sah = (0.5 * area.sum() + (leaf_area * count).sum()) / area[0]
+    assert stats["sah_cost"] == pytest.approx(sah, rel=1e-9)
+    assert stats["bytes"] == structure.nbytes
+    return d
+
+
+# ---------------------------------------------------------------------------------------------
+# Builder
+# ---------------------------------------------------------------------------------------------
+
+
+def test_camel_build_is_consistent(camel, camel_octree):
+    check_octree(camel_octree, camel.vertices, camel.faces, sample=300,
+                 rng=np.random.default_rng(0))
+    stats = camel_octree.stats
+    assert stats["depth"] == stats["max_depth"] == octree.default_max_depth(len(camel.faces))
+    assert stats["triangles"] == len(camel.faces)
+
+
+def test_camel_build_is_deterministic(camel, camel_octree):
+    again = accel.build("octree", camel.vertices, camel.faces)
+    for name, array in camel_octree.arrays.items():
+        np.testing.assert_array_equal(np.asarray(again[name]), np.asarray(array))
+
+
+@PROPERTY
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 150),
+    grid=st.booleans(),
+    shared=st.booleans(),
+    degenerate=st.sampled_from([0.0, 0.1, 0.5]),
+    duplicates=st.sampled_from([0.0, 0.2, 0.9]),
+    max_leaf_size=st.sampled_from([1, 2, 4, 8, 255]),
+    max_depth=st.sampled_from([None, 1, 2, 4, 6]),
+)
+def test_random_soup_build_is_consistent(seed, n, grid, shared, degenerate, duplicates,
+                                         **params):
+    vertices, faces = random_mesh(seed, n, grid=grid, shared=shared, degenerate=degenerate,
+                                  duplicates=duplicates)
+    structure = accel.build("octree", vertices, faces, **params)
+    check_octree(structure, vertices, faces, **params)
+
+
+def test_default_depth_is_floor_log4():
+    for n in [0, 1, 3, 4, 5, 15, 16, 17, 200, 69_092, 4**12 - 1, 4**12, 4**40]:
+        floor_log4 = (n.bit_length() - 1) // 2 if n else 0
+        want = min(octree.MAX_DEPTH_LIMIT, max(1, floor_log4))
+        assert octree.default_max_depth(n) == want, n
+
+
+def chain(lo, hi):
+    """Triangles of size 2^k at x = 2^k (tests/test_bvh_build.py's chain): the octree
+    splits the small end down to its depth limit."""
+    scale = 2.0 ** np.arange(lo, hi)
+    corners = np.array([[0.75, 0, 0], [1.25, 0, 0], [1, 0.5, 0]])
+    vertices = (corners[None] * scale[:, None, None]).reshape(-1, 3).astype(np.float32)
+    return vertices, np.arange(len(vertices), dtype=np.int32).reshape(-1, 3)
+
+
+def test_depth_limit_leaves_a_big_leaf():
+    vertices, faces = chain(-20, 12)
+    structure = accel.build("octree", vertices, faces, max_leaf_size=1, max_depth=12)
+    check_octree(structure, vertices, faces, max_leaf_size=1, max_depth=12)
+    stats = structure.stats
+    assert stats["depth"] == 12 and stats["leaves_over_max_depth"] >= 1
+    assert stats["references_per_leaf_max"] > 1
+    corners = vertices.reshape(-1, 3, 3)
+    origins = corners.mean(axis=1)
+    origins[:, 2] = corners[:, 1, 0] - corners[:, 0, 0]
+    directions = np.tile(np.float32([0, -0.0, -1]), (len(origins), 1))
+    brute = accel.build("brute", vertices, faces)
+    # (One kernel: each shape compiles anew; the soups and the camel cover them all.)
+    got = as_numpy(jrt.closest_hit(structure, origins, directions))
+    want = as_numpy(jrt.closest_hit(brute, origins, directions))
+    assert_same_hits(got, want, origins, directions, "depth limit")
+    assert (got["triangle"] >= 0).mean() > 0.5
+
+
+@pytest.mark.parametrize("vertex_count", [0, 3])
+def test_empty_mesh(vertex_count):
+    vertices = np.zeros((vertex_count, 3), np.float32)
+    faces = np.zeros((0, 3), np.int32)
+    structure = accel.build("octree", vertices, faces)
+    check_octree(structure, vertices, faces)
+    stats = structure.stats
+    # The root is always split: eight empty leaves.
+    assert (stats["triangles"], stats["cells"], stats["leaves"], stats["empty_leaves"],
+            stats["depth"], stats["references"]) == (0, 9, 8, 8, 1, 0)
+    origins = np.float32([[0, 0, -1], [0.5, 0.5, 0.5], [0, 0, 0]])
+    directions = np.float32([[0, 0, 1], [1, 0, 0], [0, -1, 0]])
+    hits = as_numpy(jrt.closest_hit(structure, origins, directions))
+    np.testing.assert_array_equal(hits["triangle"], -1)
+    np.testing.assert_array_equal(hits["t"], np.inf)
+    np.testing.assert_array_equal(np.asarray(jrt.occluded(structure, origins, directions)),
+                                  False)
+
+
+def test_all_degenerate_mesh():
+    vertices = np.float32([[0, 0, 0], [1, 1, 1], [2, 2, 2]])
+    faces = np.int32([[0, 1, 2], [0, 0, 1], [2, 2, 2]])
+    structure = accel.build("octree", vertices, faces)
+    check_octree(structure, vertices, faces)
+    assert structure.stats["degenerate_skipped"] == 3 and structure.stats["triangles"] == 0
+    hits = as_numpy(jrt.closest_hit(structure, np.float32([[1, 1, 0]]),
+                                    np.float32([[0, 0, 1]])))
+    assert hits["triangle"][0] == -1
+
+
+@pytest.mark.parametrize(("count", "max_leaf_size"), [(1, 1), (2, 1), (3, 1), (3, 4)])
+def test_tiny_meshes_build_and_hit(count, max_leaf_size):
+    vertices, faces = stacked(count)
+    structure = accel.build("octree", vertices, faces, max_leaf_size=max_leaf_size)
+    check_octree(structure, vertices, faces, max_leaf_size=max_leaf_size)
+    if count == 1:
+        assert structure.stats["depth"] == 1 and structure.stats["interior_cells"] == 1
+    top = count + 1.0
+    origins = np.float32([[0.5, 0.5, 0], [0.5, 0.5, top], [0.5, 0.5, 1.5], [0.5, 0.5, 1.5],
+                          [9, 9, 0]])
+    directions = np.float32([[0, 0, 1], [0, 0, -1], [0, 0, 1], [0, 0, -1], [0, 0, 1]])
+    expected_triangle = [0, count - 1, 1 if count > 1 else -1, 0, -1]
+    expected_t = [1, 1, 0.5 if count > 1 else np.inf, 0.5, np.inf]
+    hits = as_numpy(jrt.closest_hit(structure, origins, directions))
+    np.testing.assert_array_equal(hits["triangle"], expected_triangle)
+    np.testing.assert_array_equal(hits["t"], np.float32(expected_t))
+    occ = np.asarray(jrt.occluded(structure, origins, directions))
+    np.testing.assert_array_equal(occ, np.asarray(expected_triangle) >= 0)
+
+
+def test_degenerate_faces_are_skipped():
+    vertices, faces = stacked(3)
+    extra = np.float32([[0.5, 0.5, 0.5], [1.5, 1.5, 0.5], [2.5, 2.5, 0.5]])
+    vertices = np.concatenate([vertices, extra])
+    faces = np.concatenate([np.int32([[9, 10, 11], [0, 0, 1]]), faces,
+                            np.int32([[9, 9, 9], [3, 4, 3]])])
+    structure = accel.build("octree", vertices, faces, max_leaf_size=1)
+    check_octree(structure, vertices, faces, max_leaf_size=1)
+    assert structure.stats["degenerate_skipped"] == 4
+    hits = as_numpy(jrt.closest_hit(structure, np.float32([[0.5, 0.5, 0]]),
+                                    np.float32([[0, 0, 1]])))
+    assert hits["triangle"][0] == 2 and hits["t"][0] == 1
+
+
+BAD_PARAMS = [
+    ("max_leaf_size", 0), ("max_leaf_size", -1), ("max_leaf_size", 256),
+    ("max_leaf_size", 2.5), ("max_leaf_size", "4"), ("max_leaf_size", None),
+    ("max_leaf_size", True), ("max_depth", 0), ("max_depth", -2),
+    ("max_depth", octree.MAX_DEPTH_LIMIT + 1), ("max_depth", 4.0), ("max_depth", "8"),
+    ("max_depth", False),
+]
+
+
+@pytest.mark.parametrize(("name", "value"), BAD_PARAMS)
+def test_bad_parameters_raise(name, value):
+    vertices, faces = stacked(2)
+    with pytest.raises(ValueError, match=f"octree: {name} must be"):
+        accel.build("octree", vertices, faces, **{name: value})
+
+
+def test_unknown_parameter_raises():
+    vertices, faces = stacked(2)
+    with pytest.raises(TypeError):
+        accel.build("octree", vertices, faces, bins=16)
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("max_leaf_size", 1), ("max_leaf_size", 255), ("max_depth", 1),
+    ("max_depth", octree.MAX_DEPTH_LIMIT), ("max_leaf_size", np.int64(3)),
+])
+def test_parameter_bounds_are_accepted(name, value):
+    vertices, faces = random_mesh(1, 40, grid=False, shared=False, degenerate=0, duplicates=0)
+    structure = accel.build("octree", vertices, faces, **{name: value})
+    check_octree(structure, vertices, faces, **{name: value})
+
+
+def test_non_finite_vertices_raise():
+    vertices, faces = stacked(2)
+    vertices[1, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        accel.build("octree", vertices, faces)
+
+
+# ---------------------------------------------------------------------------------------------
+# The camel: closest hit, occluded, counters, cracks
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
+def test_camel_closest_hit_matches_brute(camel_octree, camel_rays, brute_hits, kernel,
+                                         ray_set):
+    origins, directions = camel_rays[ray_set]
+    want = brute_hits(kernel, ray_set)
+    got = as_numpy(jrt.closest_hit(camel_octree, origins, directions, kernel=kernel))
+    assert (want["triangle"] >= 0).mean() > 0.1
+    assert_same_hits(got, want, origins, directions, f"octree {kernel}/{ray_set}")
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_camel_occluded_matches_brute(camel, camel_octree, camel_brute, camel_rays,
+                                      brute_hits, kernel):
+    """20k incoherent rays, tmax a random multiple (0 to 2) of each ray's closest hit,
+    2 % of them cut exactly at it (as tests/test_bvh_traversal.py)."""
+    origins, directions = camel_rays["incoherent"]
+    t = brute_hits(kernel, "incoherent")["t"]
+    rng = np.random.default_rng(5)
+    scale = np.where(np.isfinite(t), t, 3 * camel.diagonal)
+    tmax = (rng.uniform(0, 2, len(t)) * scale).astype(np.float32)
+    exact = rng.random(len(t)) < 0.02
+    tmax[exact] = t[exact]
+    with np.errstate(invalid="ignore"):
+        near = np.isfinite(t) & (np.abs(t - tmax) <= 1e-5 * t)
+    others = np.flatnonzero(~near)
+    traced = np.union1d(np.flatnonzero(near), rng.choice(others, 2000 - near.sum(),
+                                                         replace=False))
+    got = np.asarray(jrt.occluded(camel_octree, origins, directions, tmax, kernel=kernel))
+    want = np.where(near, False, t < tmax)
+    want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
+                                           tmax[traced], kernel=kernel))
+    assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
+    bad = np.flatnonzero(got != want)
+    assert bad.size == 0, f"{bad.size} rays differ, e.g. {bad[:5]}"
+
+
+def test_camel_counters(camel_octree, camel_rays, brute_hits):
+    origins, directions = camel_rays["incoherent"]
+    hits, count = jrt.closest_hit(camel_octree, origins, directions, counters=True)
+    got = as_numpy(hits)
+    assert_same_hits(got, brute_hits("watertight", "incoherent"), origins, directions,
+                     "counters")
+    hit = got["triangle"] >= 0
+    steps, tests, leaves = (np.asarray(a) for a in count)
+    stats = camel_octree.stats
+    assert (steps >= 1).all() and (steps >= leaves).all(), "every leaf costs a step"
+    assert (tests[hit] >= 1).all() and (leaves <= tests).all()
+    assert (tests <= stats["references"]).all()
+    assert (leaves <= stats["leaves"] - stats["empty_leaves"]).all()
+    assert tests.mean() < 0.01 * stats["triangles"]
+    mask, occ = jrt.occluded(camel_octree, origins, directions, counters=True)
+    np.testing.assert_array_equal(np.asarray(mask), hit)
+    # Any-hit follows the closest-hit traversal up to its first hit, then stops.
+    for a, b in zip(occ, count, strict=True):
+        assert (np.asarray(a) <= np.asarray(b)).all()
+
+
+def test_no_cracks_from_inside_the_closed_camel(camel_octree, crack_rays):
+    """tests/test_closed_mesh.py's rays (axis-aligned through vertices and edge midpoints
+    exactly, interior points to vertices), traced in one call (one compilation)."""
+    origins = np.concatenate([o for o, _ in crack_rays.values()])
+    directions = np.concatenate([d for _, d in crack_rays.values()])
+    hits = jrt.closest_hit(camel_octree, origins, directions, kernel="watertight")
+    missed = np.asarray(hits.triangle) < 0
+    family = np.repeat(list(crack_rays), [len(o) for o, _ in crack_rays.values()])
+    assert not missed.any(), {name: int(missed[family == name].sum()) for name in crack_rays}
+
+
+# ---------------------------------------------------------------------------------------------
+# Edge cases of the parametric traversal
+# ---------------------------------------------------------------------------------------------
+
+
+def test_a_lone_ray_that_misses_the_root():
+    """One lane whose interval is empty (t0 > t1): the step's shared computation is then
+    skipped, and its all-zero answer must read as "no child" (this once looped forever)."""
+    vertices, faces = stacked(3)
+    structure = accel.build("octree", vertices, faces, max_leaf_size=1)
+    for o, d in [([9, 9, 0], [0, 0, 1]), ([0.5, 0.5, -1], [0, 0, -1])]:
+        hits = as_numpy(jrt.closest_hit(structure, np.float32([o]), np.float32([d])))
+        assert hits["triangle"][0] == -1
+        assert not np.asarray(jrt.occluded(structure, np.float32([o]), np.float32([d])))[0]
+
+
+def grid_mesh():
+    """Unit squares (two triangles each) tiling the planes z = 0, 1, 2, 3, 4 over
+    [0, 4]^2: the root cube is [0, 4]^3, so its mid-planes and many of its cells'
+    faces fall on the squares' edges and on the layers."""
+    quads = []
+    for z in range(5):
+        for x in range(4):
+            for y in range(4):
+                a, b, c, e = [x, y, z], [x + 1, y, z], [x + 1, y + 1, z], [x, y + 1, z]
+                quads += [[a, b, c], [a, c, e]]
+    corners = np.float32(quads)
+    return corners.reshape(-1, 3), np.arange(corners.shape[0] * 3, dtype=np.int32).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("max_leaf_size", [1, 4])
+def test_rays_on_cell_faces_and_centres(max_leaf_size):
+    """Axis-parallel rays (±0.0 components) lying in mid-planes, through cell centres and
+    along cell edges, from origins on cell faces and at cell corners."""
+    vertices, faces = grid_mesh()
+    structure = accel.build("octree", vertices, faces, max_leaf_size=max_leaf_size,
+                            max_depth=4)
+    d = check_octree(structure, vertices, faces, max_leaf_size=max_leaf_size, max_depth=4)
+    centre = d["interior_lo"][0] + (d["interior_hi"][0] - d["interior_lo"][0]) / 2
+    assert (centre == 2).all()
+    values = np.float32([0, 0.5, 1, 1.5, 2, 2.25, 3, 3.5, 4])
+    rng = np.random.default_rng(3)
+    n = 512
+    origins = values[rng.integers(0, values.size, (n, 3))]
+    directions = signed_zeros(rng, (n, 3))
+    axis = rng.integers(0, 3, n)
+    directions[np.arange(n), axis] = np.where(rng.random(n) < 0.5, 1, -1)
+    # Some start outside the cube, some exactly on its faces.
+    outside = rng.random(n) < 0.3
+    origins[outside, axis[outside]] = np.where(directions[outside, axis[outside]] > 0, -1, 5)
+    brute = accel.build("brute", vertices, faces)
+    for kernel in KERNELS:
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
+        got = as_numpy(jrt.closest_hit(structure, origins, directions, kernel=kernel))
+        assert_same_hits(got, want, origins, directions, kernel)
+        assert (want["triangle"] >= 0).mean() > 0.2
+
+
+# ---------------------------------------------------------------------------------------------
+# Random soups (hypothesis)
+# ---------------------------------------------------------------------------------------------
+
+NODE_CAP = 8192
+REFERENCE_CAP = 1 << 16
+LEAF_BITS = 8  # leaves of up to 255 references
+PLANE_TRIANGLES = 40
+
+
+def fits(structure: Structure) -> bool:
+    return (structure["nodes"].shape[0] <= NODE_CAP
+            and structure["references"].size <= REFERENCE_CAP)
+
+
+def fixed_shape(structure: Structure) -> Structure:
+    """The same tree with NODE_CAP rows, REFERENCE_CAP slots, CAP triangle rows and leaf
+    references of LEAF_BITS (unreferenced zero rows and slots as padding)."""
+    nodes = np.asarray(structure["nodes"])
+    m, r, t = nodes.shape[0], structure["references"].size, structure.num_triangles
+    assert fits(structure)
+    bits = structure.layout_value("leaf_bits")
+    assert bits <= LEAF_BITS and t <= CAP
+    refs = nodes.view(np.int32)[:, 4:12]
+    code = ~refs
+    padded = np.zeros((NODE_CAP, 12), np.float32)
+    padded[:m] = nodes
+    padded.view(np.int32)[:m, 4:12] = np.where(
+        refs >= 0, refs, ~(((code >> bits) << LEAF_BITS) | (code & ((1 << bits) - 1))))
+    references = np.zeros(REFERENCE_CAP, np.int32)
+    references[:r] = structure["references"]
+    triangles = np.zeros((CAP, 3, 3), np.float32)
+    triangles[:t] = structure["triangles"]
+    ids = np.full(CAP, -1, np.int32)
+    ids[:t] = structure["triangle_ids"]
+    return Structure(kind="octree", arrays={"nodes": padded, "references": references,
+                                            "triangles": triangles, "triangle_ids": ids},
+                     layout=(("leaf_bits", LEAF_BITS),), stats=structure.stats)
+
+
+def plane_values(structure) -> list[np.ndarray]:
+    """Per axis: the coordinates of the tree's mid-planes and of the root cube's faces."""
+    nodes = np.asarray(structure["nodes"])
+    centre, half = nodes[0, :3], nodes[0, 3]
+    return [np.unique(np.concatenate([nodes[:, a], [centre[a] - half, centre[a] + half]]))
+            for a in range(3)]
+
+
+def in_planes(rng, vertices, planes, count):
+    """``count`` axis-aligned flat triangles lying exactly in mid-planes (or root faces)
+    inside the soup's bounding box, their other coordinates from the soup's vertices."""
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    tri = vertices[rng.integers(0, len(vertices), (count, 3))].copy()
+    for i in range(count):
+        axis = rng.integers(0, 3)
+        inside = planes[axis][(planes[axis] >= lo[axis]) & (planes[axis] <= hi[axis])]
+        if inside.size:
+            tri[i, :, axis] = inside[rng.integers(0, inside.size)]
+    return tri.reshape(-1, 3)
+
+
+def plane_rays(rng, vertices, planes, centres, origins, directions):
+    """Half the rays rewritten to start exactly on the tree's planes: at cell centres, on
+    a mid-plane with the ray lying in it (a ±0.0 component), on root cube faces, axis-
+    parallel with ±0.0 components, or aimed at a vertex."""
+    n = len(origins) // 2
+    rows = rng.choice(len(origins), n, replace=False)
+    o, d = origins.copy(), directions.copy()
+    kind = rng.integers(0, 4, n)
+    for row, k in zip(rows, kind, strict=True):
+        if k == 0:  # at a cell centre
+            o[row] = centres[rng.integers(0, len(centres))]
+        else:  # each coordinate a plane value
+            o[row] = [planes[a][rng.integers(0, planes[a].size)] for a in range(3)]
+        if k == 1:  # lying in the mid-plane of one axis
+            d[row] = rng.normal(size=3)
+            d[row] /= np.linalg.norm(d[row])
+            d[row, rng.integers(0, 3)] = signed_zeros(rng, 1)[0]
+        elif k == 2:  # axis-parallel
+            d[row] = signed_zeros(rng, 3)
+            d[row, rng.integers(0, 3)] = 1 if rng.random() < 0.5 else -1
+        else:  # at a vertex
+            v = vertices[rng.integers(0, len(vertices))].astype(np.float64) - o[row]
+            norm = np.linalg.norm(v)
+            d[row] = v / norm if norm > 0 else [0, 0, 1]
+    return o, d.astype(np.float32)
+
+
+@st.composite
+def soups(draw):
+    """(vertices, faces, build parameters, origins, directions, rng) of one example."""
+    seed = draw(st.integers(0, 2**32 - 1))
+    n = draw(st.integers(10, CAP - PLANE_TRIANGLES))
+    grid = draw(st.booleans())
+    flat = draw(st.sampled_from([0.0, 0.3, 1.0]))
+    duplicates = draw(st.sampled_from([0.0, 0.1, 0.5]))
+    shared = draw(st.sampled_from([0.0, 0.5, 2.0]))
+    offset = draw(st.sampled_from([0.0, 0.0, 100.0, -3000.0]))
+    params = {"max_leaf_size": draw(st.sampled_from([1, 2, 4, 8])),
+              "max_depth": draw(st.sampled_from([None, 3, 5, 5]))}
+    rng = np.random.default_rng(seed)
+    vertices, faces = soup(rng, n, grid=grid, flat=flat, duplicates=duplicates, shared=shared)
+    vertices = (vertices + np.float32(offset)).astype(np.float32)
+    # Triangles in the planes the tree splits at (the root cube depends only on the
+    # bounding box, which these stay inside, so the planes are the final tree's too).
+    first = octree.build(vertices, faces, **params)
+    extra = in_planes(rng, vertices, plane_values(first), PLANE_TRIANGLES)
+    vertices = np.concatenate([vertices, extra.astype(np.float32)])
+    faces = np.arange(len(vertices), dtype=np.int32).reshape(-1, 3)
+    origins, directions = rays(rng, vertices, faces)
+    structure = octree.build(vertices, faces, **params)
+    origins, directions = plane_rays(rng, vertices, plane_values(structure),
+                                     np.asarray(structure["nodes"])[:, :3], origins,
+                                     directions)
+    return vertices, faces, params, structure, origins, directions, rng
+
+
+def soup_structures(case):
+    vertices, faces, params, structure, origins, directions, rng = case
+    assume(fits(structure))
+    unpadded = accel.build("brute", vertices, faces)
+    scale = float(np.abs(vertices).max()) * 4
+    return (params, unpadded, fixed_shape(structure), fixed_shape_brute(unpadded), scale,
+            origins, directions, rng)
+
+
+@PROPERTY
+@given(case=soups())
+def test_soup_closest_hit_matches_brute(case):
+    params, unpadded, tree, brute, scale, origins, directions, rng = soup_structures(case)
+    for kernel in KERNELS:
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
+        tmax = np.where(rng.random(N_RAYS) < 0.75, np.float32(np.inf),
+                        tmax_mix(rng, want["t"], scale))
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel, tmax=tmax))
+        got = as_numpy(jrt.closest_hit(tree, origins, directions, kernel=kernel, tmax=tmax,
+                                       lanes=64))
+        bad = differ(got, want)
+        if bad.any():
+            xfail_if_sliver_bug(bad, kernel, unpadded, origins, directions, tmax)
+        assert_same_hits(got, want, origins, directions, f"octree {kernel} {params}")
+
+
+@PROPERTY
+@given(case=soups())
+def test_soup_occluded_matches_brute(case):
+    params, unpadded, tree, brute, scale, origins, directions, rng = soup_structures(case)
+    for kernel in KERNELS:
+        t = np.asarray(jrt.closest_hit(brute, origins, directions, kernel=kernel).t)
+        tmax = tmax_mix(rng, t, scale)
+        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
+        got = np.asarray(jrt.occluded(tree, origins, directions, tmax, kernel=kernel,
+                                      lanes=32))
+        if (got != want).any():
+            xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
+        bad = np.flatnonzero(got != want)
+        assert bad.size == 0, (
+            f"{kernel} {params}: {bad.size} rays differ; first: o={origins[bad[0]].tolist()} "
+            f"d={directions[bad[0]].tolist()} tmax={tmax[bad[0]]!r} octree={got[bad[0]]}")
+
+
+def test_stack_overflow_raises():
+    rng = np.random.default_rng(11)
+    vertices, faces = soup(rng, CAP, grid=False, flat=0.3, duplicates=0.0, shared=0.5)
+    origins, directions = rays(rng, vertices, faces)
+    structure = accel.build("octree", vertices, faces, max_leaf_size=1, max_depth=6)
+    assert structure.stats["depth"] >= 4
+    tree = fixed_shape(structure)
+    with pytest.raises(StackOverflowError, match="stack_size"):
+        jrt.closest_hit(tree, origins, directions, lanes=64, stack_size=1)
+    with pytest.raises(StackOverflowError):
+        jrt.occluded(tree, origins, directions, lanes=32, stack_size=1)
+    got = as_numpy(jrt.closest_hit(tree, origins, directions, lanes=64))
+    brute = fixed_shape_brute(accel.build("brute", vertices, faces))
+    assert_same_hits(got, as_numpy(jrt.closest_hit(brute, origins, directions)), origins,
+                     directions, "default stack")
