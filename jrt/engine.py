@@ -1,7 +1,7 @@
 """The traversal engine every acceleration structure runs on.
 
 The engine owns what all structures share: the lanes, the stack, the leaf loop, the hit
-record, the counters and the overflow flag. A structure contributes a :class:`Traversal`:
+record, the counters and the status flags. A structure contributes a :class:`Traversal`:
 how a lane starts (``start``) and one step from node to node (``step``), which may name a
 leaf (a range of triangle rows to test), push one stack entry or pop one.
 
@@ -18,6 +18,12 @@ stack pointer unconditionally (a slot above the top is free, so a lane that does
 writes garbage nobody reads) and then reads the new top: one scatter and one gather, no
 copy of the stack. A push onto a full stack sets the overflow flag, which leaves jit with
 the hits; the public functions raise :class:`StackOverflowError` (never a silent miss).
+
+**Termination** is guaranteed, whatever the arrays hold: the loop also stops after an
+iteration budget that a valid structure cannot reach (see :func:`iteration_budget`), and
+then flags its unfinished rays; the public functions raise :class:`TraversalError`. A
+structure whose arrays contradict its kind (a cycle, a leaf range past the references)
+fails loudly instead of spinning forever.
 
 **Counters** (steps, triangle tests, leaves per ray) are a static option: without them
 the compiled loop carries none.
@@ -53,8 +59,32 @@ DEFAULT_STACK_SIZE = 64
 _NO_RAY = np.iinfo(np.int32).max
 
 
-class StackOverflowError(RuntimeError):
+class TraversalError(RuntimeError):
+    """A traversal could not answer every ray correctly (see the subclasses)."""
+
+
+class StackOverflowError(TraversalError):
     """A lane pushed onto a full traversal stack; its ray's answer would be wrong."""
+
+
+#: Bits of the status word the engine returns with the hits.
+STATUS_STACK_OVERFLOW = 1
+STATUS_UNFINISHED = 2
+
+
+def iteration_budget(arrays, n: int, lanes: int) -> int:
+    """Loop iterations after which a traversal is certainly broken (int32-safe).
+
+    In a valid structure a ray steps through each node or cell at most once and tests
+    each of its leaf rows once per leaf, so a ray needs at most ``2 W + 2`` iterations,
+    ``W`` the total number of rows of the structure's arrays (nodes, cells, references,
+    triangles). The lanes take rays greedily, so the loop ends within
+    ``(n / lanes + 1)`` times that (Graham's list-scheduling bound); the budget is four
+    times this, clipped to int32.
+    """
+    rows = sum(int(np.shape(a)[0]) for a in jax.tree.leaves(arrays) if np.ndim(a) > 0)
+    per_ray = 2 * rows + 2
+    return int(min(4 * (-(-n // lanes) + 1) * per_ray, np.iinfo(np.int32).max))
 
 
 class Ray(NamedTuple):
@@ -181,6 +211,7 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         "top": jnp.zeros((lanes, width), jnp.int32),
         "next_ray": jnp.int32(lanes),
         "overflow": jnp.zeros((), bool),
+        "iteration": jnp.int32(0),
         # The winning row of every ray (-1: none yet or a miss), and lanes' spare slots.
         "out": jnp.full(n + lanes, -1, jnp.int32),
     }
@@ -273,12 +304,18 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         s["trav"] = _select(s["renewed"], traversal.start(arrays, ray), s["trav"])
         # Lanes step far more often than they test (5-15 steps per ray on the camel
         # against 0.5-1.6 tests), but a phase costs all lanes whichever lanes use it.
-        return test(step(s, ray), ray)
+        s = test(step(s, ray), ray)
+        s["iteration"] = s["iteration"] + 1
+        return s
 
-    s = lax.while_loop(lambda s: jnp.any(s["ray_id"] < n), body, state)
+    budget = iteration_budget(arrays, n, lanes)
+    s = lax.while_loop(lambda s: jnp.any(s["ray_id"] < n) & (s["iteration"] < budget),
+                       body, state)
     hits = winner_hits(fn, rays[:, 0:3], rays[:, 3:6], triangles, triangle_ids, s["out"][:n])
     count = s["out_count"][:n] if counters else None
-    return hits, count, s["overflow"]
+    status = (jnp.where(s["overflow"], STATUS_STACK_OVERFLOW, 0)
+              | jnp.where(jnp.any(s["ray_id"] < n), STATUS_UNFINISHED, 0)).astype(jnp.int32)
+    return hits, count, status
 
 
 def cpu_devices() -> list:
@@ -302,8 +339,7 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
         _run_lanes, traversal, kernel=kernel, any_hit=any_hit, lanes=lanes,
         stack_size=stack_size, counters=counters, references=references)
     if devices is None or len(devices) == 1 or n < 2 * len(devices):
-        hits, count, overflow = run(arrays, rays)
-        return hits, count, overflow
+        return run(arrays, rays)
     k = len(devices)
     per = -(-n // k)
     pad = per * k - n
@@ -317,13 +353,13 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
     mesh = Mesh(np.asarray(devices), ("rays",))
 
     def shard(arrays, rays):
-        hits, count, overflow = run(arrays, rays[0])
+        hits, count, status = run(arrays, rays[0])
         hits = jax.tree.map(lambda a: a[None], hits)
         count = None if count is None else count[None]
-        return hits, count, overflow[None]
+        return hits, count, status[None]
 
     rep = jax.tree.map(lambda _: PartitionSpec(), arrays)
-    hits, count, overflow = jax.shard_map(
+    hits, count, status = jax.shard_map(
         shard, mesh=mesh, in_specs=(rep, PartitionSpec("rays")),
         out_specs=PartitionSpec("rays"), check_vma=False)(arrays, rays)
     def merge(a):  # [k, per, ...] back to ray order
@@ -331,17 +367,21 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
 
     hits = jax.tree.map(merge, hits)
     count = None if count is None else merge(count)
-    return hits, count, jnp.any(overflow)
+    status = sum(jnp.where(jnp.any(status & bit), bit, 0)
+                 for bit in (STATUS_STACK_OVERFLOW, STATUS_UNFINISHED))
+    return hits, count, status.astype(jnp.int32)
 
 
 def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel: str,
              any_hit: bool, lanes: int = DEFAULT_LANES, stack_size: int = DEFAULT_STACK_SIZE,
              counters: bool = False, devices=None):
-    """Runs every ray through ``traversal``: (hits, counters or None, overflow flag)."""
+    """Runs every ray through ``traversal``: (hits, counters or None, status).
+
+    ``status`` is an int32 scalar of ``STATUS_*`` bits (0: every ray answered)."""
     if origins.shape[0] == 0:
         empty = Hits(jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.int32),
                      jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.float32))
-        return empty, (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.zeros((), bool)
+        return empty, (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.int32(0)
     devs = tuple(devices) if devices is not None else tuple(cpu_devices())
     return _traverse(arrays, origins, directions, tmax, traversal=traversal, kernel=kernel,
                      any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters,

@@ -22,7 +22,7 @@ import accel
 from accel.structure import Structure
 from jrt import brute, engine
 from jrt import structure as _structure  # noqa: F401  (registers Structure as a pytree)
-from jrt.engine import Counters, StackOverflowError
+from jrt.engine import Counters, StackOverflowError, TraversalError
 from jrt.hits import Hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
 
@@ -71,29 +71,41 @@ def _check_options(lanes, stack_size):
         raise ValueError(f"stack_size must be a positive integer, got {stack_size!r}")
 
 
-def _raise_on_overflow(overflow, stack_size):
-    if isinstance(overflow, jax.core.Tracer):
-        # Inside a caller's jit: raise when the computation runs.
-        jax.debug.callback(_overflow_callback, overflow, stack_size=stack_size)
-    elif bool(overflow):
-        _overflow_callback(True, stack_size=stack_size)
+def _raise_on_status(status, stack_size):
+    """Raise what the engine's status word reports (inside a caller's jit: at run time)."""
+    if isinstance(status, jax.core.Tracer):
+        jax.debug.callback(_status_callback, status, stack_size=stack_size)
+    else:
+        _status_callback(status, stack_size=stack_size)
 
 
-def _overflow_callback(overflow, *, stack_size):
-    if bool(overflow):
+def _status_callback(status, *, stack_size):
+    status = int(status)
+    if status & engine.STATUS_STACK_OVERFLOW:
         raise StackOverflowError(
             f"a traversal stack of {stack_size} entries overflowed; its rays' answers would "
             f"be wrong. Pass a larger stack_size (e.g. {2 * stack_size}).")
+    if status & engine.STATUS_UNFINISHED:
+        raise TraversalError(
+            "the traversal did not finish within its iteration budget (see "
+            "jrt.engine.iteration_budget): the structure's arrays are inconsistent with its "
+            "kind (a cycle, or arrays of another kind). Rebuild it with accel.build.")
 
 
 def _engine_query(structure, origins, directions, tmax, kernel, any_hit, counters, lanes,
                   stack_size):
     _check_options(lanes, stack_size)
     traversal = traversal_of(structure)
-    hits, count, overflow = engine.traverse(
-        traversal, structure.arrays, origins, directions, tmax, kernel=kernel,
-        any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters)
-    _raise_on_overflow(overflow, stack_size)
+    try:
+        hits, count, status = engine.traverse(
+            traversal, structure.arrays, origins, directions, tmax, kernel=kernel,
+            any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters)
+    except KeyError as missing:
+        raise ValueError(
+            f"a {structure.kind!r} structure needs the array {missing}; this one has "
+            f"{sorted(structure.arrays)}. Build it with accel.build({structure.kind!r}, ...)."
+        ) from None
+    _raise_on_status(status, stack_size)
     if count is not None:
         count = Counters(steps=count[:, 0], tests=count[:, 1], leaves=count[:, 2])
     return hits, count
@@ -120,7 +132,9 @@ def closest_hit(
         counters: also return :class:`jrt.Counters` (per-ray steps, triangle tests,
             leaves); a static option: without it the compiled traversal counts nothing.
         lanes, stack_size: the engine's persistent lanes and per-lane stack entries
-            (ignored by brute force). A stack overflow raises :class:`StackOverflowError`.
+            (ignored by brute force). A stack overflow raises :class:`StackOverflowError`;
+            a traversal that cannot end (arrays inconsistent with the structure's kind)
+            raises :class:`jrt.engine.TraversalError`.
 
     Returns:
         :class:`jrt.Hits` (t inf and triangle -1 for a miss), and the counters if asked.

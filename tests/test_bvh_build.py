@@ -470,5 +470,5 @@ def test_parameter_bounds_are_accepted(name, value):
 
 def test_unknown_builder_raises():
     vertices, faces = stacked(1)
-    with pytest.raises(ValueError, match="octree"):
-        accel.build("octree", vertices, faces)
+    with pytest.raises(ValueError, match="quadtree"):
+        accel.build("quadtree", vertices, faces)

@@ -35,7 +35,7 @@ from hypothesis import strategies as st
 import accel
 import jrt
 from accel.structure import Structure
-from jrt.engine import StackOverflowError
+from jrt.engine import StackOverflowError, TraversalError, iteration_budget
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
@@ -544,11 +544,39 @@ def test_bad_options_raise(query, option, value):
 
 def test_unknown_structure_kind_raises():
     structure = tiny()
-    octree = Structure(kind="octree", arrays=dict(structure.arrays), layout=structure.layout)
+    quadtree = Structure(kind="quadtree", arrays=dict(structure.arrays),
+                         layout=structure.layout)
     o, d = np.float32([[0.5, 0.5, 0]]), np.float32([[0, 0, 1]])
     for query in (jrt.closest_hit, jrt.occluded):
-        with pytest.raises(ValueError, match="octree"):
-            query(octree, o, d)
+        with pytest.raises(ValueError, match="quadtree"):
+            query(quadtree, o, d)
+
+
+@pytest.mark.parametrize("kind", ["octree", "kdtree", "grid"])
+def test_arrays_of_another_kind_raise_instead_of_looping(kind):
+    """A BVH's arrays labelled as another kind. The octree traversal reads them as cells
+    and once looped forever: the iteration budget ends it with TraversalError. The
+    kd-tree and grid lack arrays of their own: a ValueError names the missing one."""
+    structure = tiny()
+    wrong = Structure(kind=kind, arrays=dict(structure.arrays), layout=structure.layout)
+    o, d = np.float32([[0.5, 0.5, -1], [0.2, 0.3, -1]]), np.float32([[0, 0, 1], [0, 0, 1]])
+    error, match = ((TraversalError, "iteration budget") if kind == "octree"
+                    else (ValueError, "needs the array"))
+    for query in (jrt.closest_hit, jrt.occluded):
+        with pytest.raises(error, match=match):
+            query(wrong, o, d)
+
+
+def test_iteration_budget_bounds_a_valid_traversal():
+    """A valid traversal never meets the budget: all lanes' work together (steps, tests
+    and one refill per ray, counted) stays under a quarter of it, even on one lane."""
+    rng = np.random.default_rng(3)
+    vertices, faces = soup(rng, 300, grid=True, flat=0.3, duplicates=0.1, shared=0.5)
+    origins, directions = rays(rng, vertices, faces)
+    structure = accel.build("bvh", vertices, faces, max_leaf_size=8)
+    _, count = jrt.closest_hit(structure, origins, directions, counters=True, lanes=1)
+    work = int(np.asarray(count.steps).sum() + np.asarray(count.tests).sum()) + len(origins)
+    assert work < iteration_budget(structure.arrays, len(origins), 1) / 4
 
 
 def test_counters_on_brute_force_raise():
