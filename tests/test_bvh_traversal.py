@@ -36,6 +36,7 @@ import accel
 import jrt
 from accel.structure import Structure
 from jrt.engine import StackOverflowError, TraversalError, iteration_budget
+from jrt.hits import TIE_RELATIVE
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
@@ -380,6 +381,54 @@ def xfail_if_sliver_bug(bad, kernel, structure, origins, directions, tmax):
         pytest.xfail(f"{SLIVER_BUG}; {kernel}, rays {np.flatnonzero(bad).tolist()}")
 
 
+TIE_CHAIN = (
+    "engine limitation: the tie rule (jrt.hits.prefer) is applied hit by hit, so when a "
+    "ray's hits form a chain of near-ties reaching past the 2^-20 window of the smallest t "
+    "(several triangles meeting where the ray passes, whose kernel t's spread wider than "
+    "the window, as far from the origin) the winner depends on the order in which the hits "
+    "come; brute force takes the lowest face within the window of the smallest t, and a "
+    "structure that tests a triangle again in every leaf that references it (kd-tree, BSP, "
+    "octree, grid) can end on another face of the chain")
+
+
+def kernel_hits(kernel, triangles, triangle_ids, origin, direction, tmax):
+    """(t, face) of every triangle the kernel hits with 0 < t < tmax, sorted by t."""
+    n = len(triangles)
+    t = np.asarray(jax.jit(jrt.KERNELS[kernel])(
+        np.repeat(origin[None], n, 0), np.repeat(direction[None], n, 0),
+        triangles[:, 0], triangles[:, 1], triangles[:, 2])[0])
+    keep = np.isfinite(t) & (t > 0) & (t < tmax)
+    order = np.argsort(t[keep], kind="stable")
+    return t[keep][order], np.asarray(triangle_ids)[keep][order]
+
+
+def tie_chain(t, face):
+    """(faces tied with the smallest t, faces of the chain of near-ties from it), with
+    float32 windows as jrt.hits computes them."""
+    window = lambda x: np.abs(x) * np.float32(TIE_RELATIVE)  # noqa: E731
+    tied = t <= t[0] + window(t[0])
+    chain = tied.copy()
+    for i in range(1, len(t)):  # sorted: a hit joins if tied with the chain's last
+        chain[i] |= chain[i - 1] and t[i] <= t[i - 1] + window(t[i - 1])
+    return face[tied], face[chain]
+
+
+def xfail_if_tie_chain(bad, kernel, structure, origins, directions, tmax, got, want):
+    """Mismatches all of the TIE_CHAIN kind: xfail. A mismatch is of that kind when the
+    ray's hits chain past the window of the smallest t, brute force's answer is the lowest
+    face within that window and the structure's is a face of the chain."""
+    triangles, ids = np.asarray(structure["triangles"]), structure["triangle_ids"]
+    for i in np.flatnonzero(bad):
+        t, face = kernel_hits(kernel, triangles, ids, origins[i], directions[i], tmax[i])
+        if t.size == 0:
+            return
+        tied, chain = tie_chain(t, face)
+        if not (chain.size > tied.size and want["triangle"][i] == tied.min()
+                and got["triangle"][i] in chain):
+            return
+    pytest.xfail(f"{TIE_CHAIN}; {kernel}, rays {np.flatnonzero(bad).tolist()}")
+
+
 def soup_structures(case):
     """A soup's build parameters and structures (unpadded brute, fixed-shape BVH,
     fixed-shape brute), a t scale beyond the soup, its rays and random generator."""
@@ -391,39 +440,57 @@ def soup_structures(case):
     return params, unpadded, bvh, brute, scale, origins, directions, rng
 
 
+def check_closest_hit_matches_brute(structure, brute, unpadded, origins, directions, rng,
+                                    scale, label):
+    """Closest hits of ``structure`` (fixed shape) equal brute force's with every kernel,
+    with tmax cutting some rays at, just past and before their hits. Mismatches that are
+    all of a known, documented kind (SLIVER_BUG, TIE_CHAIN) xfail; any other fails."""
+    for kernel in KERNELS:
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
+        tmax = np.where(rng.random(len(origins)) < 0.75, np.float32(np.inf),
+                        tmax_mix(rng, want["t"], scale))
+        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel, tmax=tmax))
+        got = as_numpy(jrt.closest_hit(structure, origins, directions, kernel=kernel,
+                                       tmax=tmax, lanes=64))
+        bad = differ(got, want)
+        if bad.any():
+            xfail_if_sliver_bug(bad, kernel, unpadded, origins, directions, tmax)
+            xfail_if_tie_chain(bad, kernel, unpadded, origins, directions, tmax, got, want)
+        assert_same_hits(got, want, origins, directions, f"{label} {kernel}")
+
+
+def check_occluded_matches_brute(structure, brute, unpadded, origins, directions, rng, scale,
+                                 label):
+    """``occluded`` of ``structure`` equals brute force's with every kernel, tmax cut at,
+    just past and before the closest hits (the interesting cut-off points)."""
+    for kernel in KERNELS:
+        t = np.asarray(jrt.closest_hit(brute, origins, directions, kernel=kernel).t)
+        tmax = tmax_mix(rng, t, scale)
+        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
+        got = np.asarray(jrt.occluded(structure, origins, directions, tmax, kernel=kernel,
+                                      lanes=32))
+        if (got != want).any():
+            xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
+        bad = np.flatnonzero(got != want)
+        assert bad.size == 0, (
+            f"{label} {kernel}: {bad.size} rays differ; first: o={origins[bad[0]].tolist()} "
+            f"d={directions[bad[0]].tolist()} tmax={tmax[bad[0]]!r} got={got[bad[0]]}")
+
+
 @PROPERTY
 @given(case=soups())
 def test_soup_closest_hit_matches_brute(case):
     params, unpadded, bvh, brute, scale, origins, directions, rng = soup_structures(case)
-    for kernel in KERNELS:
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
-        tmax = np.where(rng.random(N_RAYS) < 0.75, np.float32(np.inf),
-                        tmax_mix(rng, want["t"], scale))
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel, tmax=tmax))
-        got = as_numpy(jrt.closest_hit(bvh, origins, directions, kernel=kernel, tmax=tmax,
-                                       lanes=64))
-        bad = differ(got, want)
-        if bad.any():
-            xfail_if_sliver_bug(bad, kernel, unpadded, origins, directions, tmax)
-        assert_same_hits(got, want, origins, directions, f"{kernel} {params}")
+    check_closest_hit_matches_brute(bvh, brute, unpadded, origins, directions, rng, scale,
+                                    f"bvh {params}")
 
 
 @PROPERTY
 @given(case=soups())
 def test_soup_occluded_matches_brute(case):
     params, unpadded, bvh, brute, scale, origins, directions, rng = soup_structures(case)
-    for kernel in KERNELS:
-        # (The closest hits without tmax give the interesting cut-off points.)
-        t = np.asarray(jrt.closest_hit(bvh, origins, directions, kernel=kernel, lanes=64).t)
-        tmax = tmax_mix(rng, t, scale)
-        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
-        got = np.asarray(jrt.occluded(bvh, origins, directions, tmax, kernel=kernel, lanes=32))
-        if (got != want).any():
-            xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
-        bad = np.flatnonzero(got != want)
-        assert bad.size == 0, (
-            f"{kernel} {params}: {bad.size} rays differ; first: o={origins[bad[0]].tolist()} "
-            f"d={directions[bad[0]].tolist()} tmax={tmax[bad[0]]!r} bvh={got[bad[0]]}")
+    check_occluded_matches_brute(bvh, brute, unpadded, origins, directions, rng, scale,
+                                 f"bvh {params}")
 
 
 # ---------------------------------------------------------------------------------------------

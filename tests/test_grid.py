@@ -31,13 +31,12 @@ from test_bvh_traversal import (
     KERNELS,
     N_RAYS,
     assert_same_hits,
-    differ,
+    check_closest_hit_matches_brute,
+    check_occluded_matches_brute,
     fixed_shape_brute,
     rays,
     signed_zeros,
     soup,
-    tmax_mix,
-    xfail_if_sliver_bug,
 )
 
 import accel
@@ -651,32 +650,13 @@ def test_soup_build_is_consistent(case):
 @given(case=grid_soups())
 def test_soup_closest_hit_matches_brute(case):
     params, unpadded, _, padded, brute, scale, origins, directions, rng = soup_structures(case)
-    for kernel in KERNELS:
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
-        tmax = np.where(rng.random(len(origins)) < 0.75, np.float32(np.inf),
-                        tmax_mix(rng, want["t"], scale))
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel, tmax=tmax))
-        got = as_numpy(jrt.closest_hit(padded, origins, directions, kernel=kernel, tmax=tmax,
-                                       lanes=64))
-        bad = differ(got, want)
-        if bad.any():
-            xfail_if_sliver_bug(bad, kernel, unpadded, origins, directions, tmax)
-        assert_same_hits(got, want, origins, directions, f"grid {kernel} {params}")
+    check_closest_hit_matches_brute(padded, brute, unpadded, origins, directions, rng, scale,
+                                    f"grid {params}")
 
 
 @PROPERTY
 @given(case=grid_soups())
 def test_soup_occluded_matches_brute(case):
     params, unpadded, _, padded, brute, scale, origins, directions, rng = soup_structures(case)
-    for kernel in KERNELS:
-        t = np.asarray(jrt.closest_hit(brute, origins, directions, kernel=kernel).t)
-        tmax = tmax_mix(rng, t, scale)
-        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
-        got = np.asarray(jrt.occluded(padded, origins, directions, tmax, kernel=kernel,
-                                      lanes=32))
-        if (got != want).any():
-            xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
-        bad = np.flatnonzero(got != want)
-        assert bad.size == 0, (
-            f"{kernel} {params}: {bad.size} rays differ; first: o={origins[bad[0]].tolist()} "
-            f"d={directions[bad[0]].tolist()} tmax={tmax[bad[0]]!r} grid={got[bad[0]]}")
+    check_occluded_matches_brute(padded, brute, unpadded, origins, directions, rng, scale,
+                                 f"grid {params}")

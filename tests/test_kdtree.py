@@ -31,12 +31,11 @@ from test_bvh_traversal import (
     KERNELS,
     N_RAYS,
     assert_same_hits,
-    differ,
+    check_closest_hit_matches_brute,
+    check_occluded_matches_brute,
     fixed_shape_brute,
     rays,
     soup,
-    tmax_mix,
-    xfail_if_sliver_bug,
 )
 
 import accel
@@ -674,35 +673,15 @@ def soup_case(case, kind, planes, more_rays):
 def check_soup_closest_hit(case, kind=KIND, planes=kd_planes, more_rays=None):
     params, unpadded, structure, brute, scale, origins, directions, rng = soup_case(
         case, kind, planes, more_rays)
-    for kernel in KERNELS:
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
-        tmax = np.where(rng.random(len(origins)) < 0.75, np.float32(np.inf),
-                        tmax_mix(rng, want["t"], scale))
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel, tmax=tmax))
-        got = as_numpy(jrt.closest_hit(structure, origins, directions, kernel=kernel,
-                                       tmax=tmax, lanes=64))
-        bad = differ(got, want)
-        if bad.any():
-            xfail_if_sliver_bug(bad, kernel, unpadded, origins, directions, tmax)
-        assert_same_hits(got, want, origins, directions, f"{kind} {kernel} {params}")
+    check_closest_hit_matches_brute(structure, brute, unpadded, origins, directions, rng,
+                                    scale, f"{kind} {params}")
 
 
 def check_soup_occluded(case, kind=KIND, planes=kd_planes, more_rays=None):
     params, unpadded, structure, brute, scale, origins, directions, rng = soup_case(
         case, kind, planes, more_rays)
-    for kernel in KERNELS:
-        t = np.asarray(jrt.closest_hit(brute, origins, directions, kernel=kernel).t)
-        tmax = tmax_mix(rng, t, scale)
-        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
-        got = np.asarray(jrt.occluded(structure, origins, directions, tmax, kernel=kernel,
-                                      lanes=32))
-        if (got != want).any():
-            xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
-        bad = np.flatnonzero(got != want)
-        assert bad.size == 0, (
-            f"{kind} {kernel} {params}: {bad.size} rays differ; first: "
-            f"o={origins[bad[0]].tolist()} d={directions[bad[0]].tolist()} "
-            f"tmax={tmax[bad[0]]!r} got={got[bad[0]]}")
+    check_occluded_matches_brute(structure, brute, unpadded, origins, directions, rng, scale,
+                                 f"{kind} {params}")
 
 
 @PROPERTY

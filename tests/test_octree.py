@@ -18,26 +18,23 @@ padded to fixed shapes so that every example runs the same compiled kernels.
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 import pytest
 import test_bvh_traversal as bvh_tests
 import test_closed_mesh as closed_mesh_tests
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
-from test_bvh_build import expected_ids, half_area, random_mesh, stacked
+from test_bvh_build import chain, expected_ids, half_area, random_mesh, stacked
 from test_bvh_traversal import (
     CAP,
     KERNELS,
-    N_RAYS,
     assert_same_hits,
-    differ,
+    check_closest_hit_matches_brute,
+    check_occluded_matches_brute,
     fixed_shape_brute,
     rays,
     signed_zeros,
     soup,
-    tmax_mix,
-    xfail_if_sliver_bug,
 )
 
 import accel
@@ -46,7 +43,6 @@ from accel import octree
 from accel.geometry import triangles_overlap_boxes, widen_boxes
 from accel.structure import Structure
 from jrt.engine import StackOverflowError
-from jrt.hits import TIE_RELATIVE
 from jrt.trace import as_numpy
 
 STAT_KEYS = {
@@ -287,15 +283,6 @@ def test_default_depth_is_floor_log4():
         floor_log4 = (n.bit_length() - 1) // 2 if n else 0
         want = min(octree.MAX_DEPTH_LIMIT, max(1, floor_log4))
         assert octree.default_max_depth(n) == want, n
-
-
-def chain(lo, hi):
-    """Triangles of size 2^k at x = 2^k (tests/test_bvh_build.py's chain): the octree
-    splits the small end down to its depth limit."""
-    scale = 2.0 ** np.arange(lo, hi)
-    corners = np.array([[0.75, 0, 0], [1.25, 0, 0], [1, 0.5, 0]])
-    vertices = (corners[None] * scale[:, None, None]).reshape(-1, 3).astype(np.float32)
-    return vertices, np.arange(len(vertices), dtype=np.int32).reshape(-1, 3)
 
 
 def test_depth_limit_leaves_a_big_leaf():
@@ -669,54 +656,6 @@ def soups(draw):
     return vertices, faces, params, structure, origins, directions, rng
 
 
-TIE_CHAIN = (
-    "engine limitation: the tie rule (jrt.hits.prefer) is applied hit by hit, so when a "
-    "ray's hits form a chain of near-ties reaching past the 2^-20 window of the smallest t "
-    "(several triangles meeting where the ray passes, whose kernel t's spread wider than "
-    "the window, as far from the origin) the winner depends on the order in which the hits "
-    "come; brute force takes the lowest face within the window of the smallest t, and the "
-    "octree, which tests a triangle again in every leaf that references it, can end on "
-    "another face of the chain")
-
-
-def kernel_hits(kernel, triangles, triangle_ids, origin, direction, tmax):
-    """(t, face) of every triangle the kernel hits with 0 < t < tmax, sorted by t."""
-    n = len(triangles)
-    t = np.asarray(jax.jit(jrt.KERNELS[kernel])(
-        np.repeat(origin[None], n, 0), np.repeat(direction[None], n, 0),
-        triangles[:, 0], triangles[:, 1], triangles[:, 2])[0])
-    keep = np.isfinite(t) & (t > 0) & (t < tmax)
-    order = np.argsort(t[keep], kind="stable")
-    return t[keep][order], np.asarray(triangle_ids)[keep][order]
-
-
-def tie_chain(t, face):
-    """(faces tied with the smallest t, faces of the chain of near-ties from it), with
-    float32 windows as jrt.hits computes them."""
-    window = lambda x: np.abs(x) * np.float32(TIE_RELATIVE)  # noqa: E731
-    tied = t <= t[0] + window(t[0])
-    chain = tied.copy()
-    for i in range(1, len(t)):  # sorted: a hit joins if tied with the chain's last
-        chain[i] |= chain[i - 1] and t[i] <= t[i - 1] + window(t[i - 1])
-    return face[tied], face[chain]
-
-
-def xfail_if_tie_chain(bad, kernel, structure, origins, directions, tmax, got, want):
-    """Mismatches all of the TIE_CHAIN kind: xfail. A mismatch is of that kind when the
-    ray's hits chain past the window of the smallest t, brute force's answer is the lowest
-    face within that window and the octree's is a face of the chain."""
-    triangles, ids = np.asarray(structure["triangles"]), structure["triangle_ids"]
-    for i in np.flatnonzero(bad):
-        t, face = kernel_hits(kernel, triangles, ids, origins[i], directions[i], tmax[i])
-        if t.size == 0:
-            return
-        tied, chain = tie_chain(t, face)
-        if not (chain.size > tied.size and want["triangle"][i] == tied.min()
-                and got["triangle"][i] in chain):
-            return
-    pytest.xfail(f"{TIE_CHAIN}; {kernel}, rays {np.flatnonzero(bad).tolist()}")
-
-
 def soup_structures(case):
     vertices, faces, params, structure, origins, directions, rng = case
     assume(fits(structure))
@@ -730,36 +669,16 @@ def soup_structures(case):
 @given(case=soups())
 def test_soup_closest_hit_matches_brute(case):
     params, unpadded, tree, brute, scale, origins, directions, rng = soup_structures(case)
-    for kernel in KERNELS:
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
-        tmax = np.where(rng.random(N_RAYS) < 0.75, np.float32(np.inf),
-                        tmax_mix(rng, want["t"], scale))
-        want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel, tmax=tmax))
-        got = as_numpy(jrt.closest_hit(tree, origins, directions, kernel=kernel, tmax=tmax,
-                                       lanes=64))
-        bad = differ(got, want)
-        if bad.any():
-            xfail_if_sliver_bug(bad, kernel, unpadded, origins, directions, tmax)
-            xfail_if_tie_chain(bad, kernel, unpadded, origins, directions, tmax, got, want)
-        assert_same_hits(got, want, origins, directions, f"octree {kernel} {params}")
+    check_closest_hit_matches_brute(tree, brute, unpadded, origins, directions, rng, scale,
+                                    f"octree {params}")
 
 
 @PROPERTY
 @given(case=soups())
 def test_soup_occluded_matches_brute(case):
     params, unpadded, tree, brute, scale, origins, directions, rng = soup_structures(case)
-    for kernel in KERNELS:
-        t = np.asarray(jrt.closest_hit(brute, origins, directions, kernel=kernel).t)
-        tmax = tmax_mix(rng, t, scale)
-        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
-        got = np.asarray(jrt.occluded(tree, origins, directions, tmax, kernel=kernel,
-                                      lanes=32))
-        if (got != want).any():
-            xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
-        bad = np.flatnonzero(got != want)
-        assert bad.size == 0, (
-            f"{kernel} {params}: {bad.size} rays differ; first: o={origins[bad[0]].tolist()} "
-            f"d={directions[bad[0]].tolist()} tmax={tmax[bad[0]]!r} octree={got[bad[0]]}")
+    check_occluded_matches_brute(tree, brute, unpadded, origins, directions, rng, scale,
+                                 f"octree {params}")
 
 
 def test_stack_overflow_raises():
