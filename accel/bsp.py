@@ -73,6 +73,7 @@ from accel.kdtree import (
     MIN_EMPTY_CUT,
     check_params,
     default_max_depth,
+    finish_plane_tree,
     half_area,
     ranks_in_segments,
     split_cost,
@@ -481,44 +482,6 @@ def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, lea
         nodes[0, 0] = 1.0
         nodes[0, 3] = bounds[1, 0]
         nodes.view(np.int32)[0, 4:6] = [ref[0] if total else -1, -1]
-    lo = _cat(node_lo, np.float64, (0, 3))
-    hi = _cat(node_hi, np.float64, (0, 3))
-    depth = _cat(node_depth, np.int64)
-    interior = np.zeros(total, bool)
-    interior[s_ids] = True
-    is_leaf = ~interior
-    count = np.zeros(total, np.int64)
-    count[l_ids] = l_count
-    areas = half_area(lo, hi)
-    root_area = areas[0] if total else 0.0
-    ct, ci = params["traversal_cost"], params["intersection_cost"]
-    if root_area > 0:
-        sah = (ct * areas[interior].sum() + ci * (areas[is_leaf] * count[is_leaf]).sum()) \
-            / root_area
-    else:
-        sah = 0.0
-    full = l_count[l_count > 0]
-    if references.size == 0:
-        # The engine gathers a slot even when no leaf names one: one unused slot.
-        references = np.zeros(1, np.int32)
-    arrays = {"nodes": nodes, "bounds": bounds.astype(np.float32), "references": references,
-              "triangles": np.ascontiguousarray(tris), "triangle_ids": ids}
-    stats = {
-        "build_seconds": time.perf_counter() - start_time,
-        **params,
-        "triangles": int(tris.shape[0]),
-        **extra,
-        "nodes": int(total) if total else 1,
-        "interior_nodes": int(s_ids.size),
-        "leaves": int(is_leaf.sum()) if total else 1,
-        "empty_leaves": int((is_leaf & (count == 0)).sum()) if total else 1,
-        "depth": int(depth.max()) if total else 0,
-        "references": int(full.sum()),
-        "references_per_triangle": float(full.sum() / max(tris.shape[0], 1)),
-        "references_per_leaf_mean": float(full.mean()) if full.size else 0.0,
-        "references_per_leaf_max": int(full.max()) if full.size else 0,
-        "sah_cost": float(sah),
-        "bytes": int(sum(a.nbytes for a in arrays.values())),
-    }
-    return Structure(kind="bsp", arrays=arrays, layout=(("leaf_bits", leaf_bits),),
-                     stats=stats)
+    return finish_plane_tree("bsp", nodes, bounds, references, tris, ids, leaf_bits,
+                             node_lo, node_hi, node_depth, s_ids, l_ids, l_count, total,
+                             params, extra, start_time)

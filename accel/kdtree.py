@@ -529,6 +529,19 @@ def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, lea
         nodes = np.zeros((1, ROW_FLOATS), np.float32)
         nodes[0, 0] = bounds[1, 0]
         nodes.view(np.int32)[0, 2:4] = [ref[0] if total else -1, -1]
+    return finish_plane_tree("kdtree", nodes, bounds, references, tris, ids, leaf_bits,
+                             node_lo, node_hi, node_depth, s_ids, l_ids, l_count, total,
+                             params, extra, start_time)
+
+
+def finish_plane_tree(kind, nodes, bounds, references, tris, ids, leaf_bits, node_lo, node_hi,
+                      node_depth, s_ids, l_ids, l_count, total, params, extra, start_time):
+    """The arrays and statistics of a plane tree (kd-tree or BSP tree) once its rows are
+    laid out: shared by both builders. ``s_ids``/``l_ids``: the node ids of the interior
+    nodes and of the leaves (empty children included), ``l_count`` the leaves' reference
+    counts; ``node_lo``/``node_hi``/``node_depth`` per node by id. The SAH cost is
+    Goldsmith & Salmon's: (C_T Σ interior areas + C_I Σ leaf area × references) / root area.
+    """
     lo = _cat(node_lo, np.float64, (0, 3))
     hi = _cat(node_hi, np.float64, (0, 3))
     depth = _cat(node_depth, np.int64)
@@ -547,12 +560,11 @@ def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, lea
     else:
         sah = 0.0
     full = l_count[l_count > 0]
-    triangles = np.ascontiguousarray(tris)
     if references.size == 0:
         # The engine gathers a slot even when no leaf names one: one unused slot.
         references = np.zeros(1, np.int32)
     arrays = {"nodes": nodes, "bounds": bounds.astype(np.float32), "references": references,
-              "triangles": triangles, "triangle_ids": ids}
+              "triangles": np.ascontiguousarray(tris), "triangle_ids": ids}
     stats = {
         "build_seconds": time.perf_counter() - start_time,
         **params,
@@ -570,5 +582,4 @@ def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, lea
         "sah_cost": float(sah),
         "bytes": int(sum(a.nbytes for a in arrays.values())),
     }
-    return Structure(kind="kdtree", arrays=arrays, layout=(("leaf_bits", leaf_bits),),
-                     stats=stats)
+    return Structure(kind=kind, arrays=arrays, layout=(("leaf_bits", leaf_bits),), stats=stats)
