@@ -49,22 +49,66 @@ def _cmd_trace(args) -> int:
 
 
 def _cmd_render(args) -> int:
+    if args.scene is not None:
+        return _render_scene(args)
+    if args.depth is not None or args.samples is not None:
+        raise ValueError("--depth and --samples apply to --scene renders (the Whitted tree)")
     from skimage import io
 
     from jrt.camera import frame_mesh
     from jrt.render import render_lambert, to_srgb8
 
+    accel_name = args.accel or "bvh"
+    kernel = args.kernel or DEFAULT_KERNEL
+    width, height = args.width or 640, args.height or 480
     mesh = _mesh(args.mesh)
     print(mesh.summary())
-    structure = accel.build(args.accel, mesh.vertices, mesh.faces)
-    camera = frame_mesh(mesh.vertices, width=args.width, height=args.height, vfov=args.vfov,
+    structure = accel.build(accel_name, mesh.vertices, mesh.faces)
+    camera = frame_mesh(mesh.vertices, width=width, height=height, vfov=args.vfov,
                         azimuth=args.azimuth, elevation=args.elevation)
-    image, stats = render_lambert(mesh, structure, camera, kernel=args.kernel,
+    image, stats = render_lambert(mesh, structure, camera, kernel=kernel,
                                   shadows=not args.no_shadows, ambient=args.ambient)
-    out = Path(args.output)
+    out = Path(args.output or "camel.png")
     out.parent.mkdir(parents=True, exist_ok=True)
     io.imsave(out, to_srgb8(image), check_contrast=False)
-    print(f"{args.accel}/{args.kernel} {stats.summary()} (compile included) -> {out}")
+    print(f"{accel_name}/{kernel} {stats.summary()} (compile included) -> {out}")
+    return 0
+
+
+def _render_scene(args) -> int:
+    """``jrt render --scene NAME|FILE``: the Whitted renderer (jrt.whitted)."""
+    import dataclasses
+
+    from skimage import io
+
+    from jrt.scene import MAX_DEPTH, MAX_SAMPLES, load_scene
+    from jrt.whitted import prepare, render_scene
+
+    if args.mesh is not None:
+        raise ValueError(f"give a mesh ({args.mesh}) or --scene, not both")
+    for option, value, most in (("--depth", args.depth, MAX_DEPTH),
+                                ("--samples", args.samples, MAX_SAMPLES)):
+        if value is not None and value > most:
+            raise ValueError(f"{option} {value}: allowed 1..{most}")
+    scene = load_scene(args.scene)
+    settings = scene.settings
+    changes = {key: value for key, value in (
+        ("accel", args.accel), ("kernel", args.kernel), ("max_depth", args.depth),
+        ("samples", args.samples)) if value is not None}
+    if changes:
+        scene = dataclasses.replace(scene, settings=dataclasses.replace(settings, **changes))
+    width = args.width or scene.camera.width
+    height = args.height or scene.camera.height
+    setup = prepare(scene)
+    geometry = setup.geometry
+    print(f"{scene.name}: {geometry.mesh.summary()}; {scene.settings.accel} built in "
+          f"{setup.structure.stats.get('build_seconds', float('nan')):.2f} s")
+    image, stats = render_scene(setup, width=width, height=height)
+    out = Path(args.output or f"{scene.name}.png")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    io.imsave(out, np.round(np.clip(image, 0, 1) * 255).astype(np.uint8), check_contrast=False)
+    print(f"{scene.settings.accel}/{scene.settings.kernel} {scene.name} {stats.summary()} "
+          f"-> {out}")
     return 0
 
 
@@ -79,11 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jrt", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    def common(p):
-        p.add_argument("--kernel", choices=tuple(KERNELS), default=DEFAULT_KERNEL,
-                       help=f"ray-triangle kernel (default {DEFAULT_KERNEL})")
-        p.add_argument("--accel", choices=accel.NAMES, default="bvh",
-                       help="acceleration structure (default bvh; brute is the oracle)")
+    def common(p, scene_default=False):
+        also = "; with --scene, the scene's" if scene_default else ""
+        p.add_argument("--kernel", choices=tuple(KERNELS),
+                       default=None if scene_default else DEFAULT_KERNEL,
+                       help=f"ray-triangle kernel (default {DEFAULT_KERNEL}{also})")
+        p.add_argument("--accel", choices=accel.NAMES, default=None if scene_default else "bvh",
+                       help=f"acceleration structure (default bvh{also}; brute is the oracle)")
 
     trace = sub.add_parser("trace", help="closest hits (or occlusion) of rays from a file")
     trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL), or 'camel' / 'camel-19k'")
@@ -95,18 +141,36 @@ def build_parser() -> argparse.ArgumentParser:
     common(trace)
     trace.set_defaults(run=_cmd_trace)
 
-    render = sub.add_parser("render", help="render a mesh (default: the camel) to a PNG")
+    render = sub.add_parser(
+        "render", help="render a mesh (Lambert, default: the camel) or a scene (--scene, "
+        "Whitted) to a PNG")
     render.add_argument("mesh", nargs="?", default=None,
                         help="mesh file or 'camel' / 'camel-19k' (default camel)")
-    render.add_argument("-o", "--output", default="camel.png", help="PNG path (default camel.png)")
-    render.add_argument("--width", type=_positive_int, default=640)
-    render.add_argument("--height", type=_positive_int, default=480)
-    render.add_argument("--vfov", type=float, default=30.0, help="vertical field of view, degrees")
-    render.add_argument("--azimuth", type=float, default=50.0, help="degrees around the up axis")
-    render.add_argument("--elevation", type=float, default=20.0, help="degrees above the horizon")
-    render.add_argument("--ambient", type=float, default=0.15, help="ambient share in [0, 1]")
-    render.add_argument("--no-shadows", action="store_true", help="skip the shadow rays")
-    common(render)
+    render.add_argument("--scene", default=None, metavar="NAME|FILE",
+                        help="render a scene with the Whitted tree: a built-in name (camel, "
+                        "glass-camel, mirror-camel) or a .toml scene file")
+    render.add_argument("-o", "--output", default=None,
+                        help="PNG path (default camel.png, or SCENE-NAME.png with --scene)")
+    render.add_argument("--width", type=_positive_int, default=None,
+                        help="pixels (default 640, or the scene's camera)")
+    render.add_argument("--height", type=_positive_int, default=None,
+                        help="pixels (default 480, or the scene's camera)")
+    render.add_argument("--depth", type=_positive_int, default=None,
+                        help="--scene: levels of the Whitted tree (default the scene's)")
+    render.add_argument("--samples", type=_positive_int, default=None,
+                        help="--scene: wavelength samples with dispersion (default the scene's)")
+    mesh_only = "; mesh renders only (a scene has its own)"
+    render.add_argument("--vfov", type=float, default=30.0,
+                        help=f"vertical field of view, degrees{mesh_only}")
+    render.add_argument("--azimuth", type=float, default=50.0,
+                        help=f"degrees around the up axis{mesh_only}")
+    render.add_argument("--elevation", type=float, default=20.0,
+                        help=f"degrees above the horizon{mesh_only}")
+    render.add_argument("--ambient", type=float, default=0.15,
+                        help=f"ambient share in [0, 1]{mesh_only}")
+    render.add_argument("--no-shadows", action="store_true",
+                        help=f"skip the shadow rays{mesh_only}")
+    common(render, scene_default=True)
     render.set_defaults(run=_cmd_render)
     return parser
 

@@ -1,0 +1,410 @@
+"""The Whitted renderer (jrt.whitted) against closed forms, conservation laws and itself.
+
+Small images and few wavelength samples: the machine is small. The synthetic scenes are
+TOML files written into tmp_path with box meshes from trimesh; the camel scenes use the
+19k-triangle camel. Every check computes its expectation independently of the renderer
+(Fresnel's normal-incidence R by hand, the sky from its documented formula).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+import trimesh
+from skimage import io
+
+from jrt import optics, whitted
+from jrt.cli import main
+from jrt.data import has_camel
+from jrt.render import SKY_BOTTOM, SKY_TOP
+from jrt.scene import BUILTIN_SCENES, builtin_toml, parse_scene
+from jrt.spectral import rgb_to_reflectance, spectrum_to_xyz
+
+CHUNK = 4096  # rays per compiled call in these tests: small images
+
+camel = pytest.mark.camel
+needs_camel = pytest.mark.skipif(not has_camel("camel-19k"),
+                                 reason="camel-19k.off not found (set JRT_DATA)")
+
+
+def sky_rgb(d):
+    """The documented "sky": (1 - w) SKY_TOP + w SKY_BOTTOM, w = (1 - d_y) / 2."""
+    w = np.clip((1 - np.asarray(d, np.float64)[..., 1]) / 2, 0, 1)[..., None]
+    return np.asarray(SKY_TOP) * (1 - w) + np.asarray(SKY_BOTTOM) * w
+
+
+def camel_scene(name="glass-camel", **replace):
+    """A built-in scene on the 19k camel, with text replacements in its TOML."""
+    text = builtin_toml(name).replace('mesh = "camel"', 'mesh = "camel-19k"')
+    for old, new in replace.items():
+        assert old in text, old
+        text = text.replace(old, new)
+    return parse_scene(text, source=f"test {name}")
+
+
+def primary_kinds(setup, width, height):
+    """Kind code hit by each pixel's camera ray (-1: background), [H, W]."""
+    rays = whitted.camera_level(setup, setup.camera(width, height))
+    level = whitted.shade_level(setup, rays, chunk=CHUNK)
+    copies = setup.channels if setup.spectral else 1
+    return level.kinds[::copies].reshape(height, width)
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def glass19k():
+    """The glass camel (BK7, dispersion) on the 19k camel, 4 wavelength samples."""
+    if not has_camel("camel-19k"):
+        pytest.skip("camel-19k.off not found (set JRT_DATA)")
+    return whitted.prepare(camel_scene(), samples=4)
+
+
+# --------------------------------------------------------------------------- what is compiled
+
+
+@camel
+@needs_camel
+def test_opaque_scene_compiles_no_optics_and_matches_the_general_path(monkeypatch):
+    scene = camel_scene("camel")
+    setup = whitted.prepare(scene)
+    assert not setup.features.dielectric and not setup.features.mirror
+    program = whitted.chunk_program(setup)
+    for name in ("refract", "fresnel", "cauchy", "reflect"):
+        assert f"name={name}" not in program
+    general = dataclasses.replace(setup.features, dielectric=True, mirror=True)
+    assert "name=refract" in whitted.chunk_program(
+        dataclasses.replace(setup, features=general))
+
+    def boom(*args, **kwargs):
+        raise AssertionError("an opaque scene traced optics code")
+
+    with monkeypatch.context() as m:
+        for name in ("refract", "fresnel", "fresnel_sp", "cauchy", "reflect",
+                     "interface_indices"):
+            m.setattr(optics, name, boom)
+        m.setattr(whitted, "_COMPILED", {})
+        jax.clear_caches()  # trace afresh, with the raising optics
+        image, stats = whitted.render_scene(setup, width=48, height=36, chunk=CHUNK)
+    assert stats.channels == 3 and stats.mode == "tree"
+    assert stats.rays_per_level == (48 * 36,) and stats.shadow_rays > 0
+
+    forced, forced_stats = whitted.render_scene(setup, width=48, height=36, chunk=CHUNK,
+                                                features=general)
+    assert forced_stats.channels == 3
+    np.testing.assert_allclose(forced, image, atol=1e-6)
+    kinds = primary_kinds(setup, 48, 36)
+    assert (kinds == 0).mean() > 0.3  # the camel and the floor are in the picture
+
+
+@camel
+@needs_camel
+def test_dispersion_decides_the_channels(glass19k):
+    assert glass19k.features.dispersion and glass19k.spectral
+    _, stats = whitted.render_scene(glass19k, width=16, height=12, max_depth=2, chunk=CHUNK)
+    assert stats.channels == 4 and stats.rays_per_level[0] == 16 * 12 * 4
+
+
+# --------------------------------------------------------------------------- closed forms
+
+SYNTHETIC = """\
+name = "synthetic"
+
+[camera]
+eye = {eye}
+target = {target}
+up = {up}
+vfov = {vfov}
+width = {size}
+height = {size}
+
+[settings]
+max_depth = {depth}
+samples = 8
+threshold = 0.0
+accel = "brute"
+background = "sky"
+ambient = 0.2
+
+[materials.glass]
+kind = "dielectric"
+glass = "BK7"
+
+[materials.mirror]
+kind = "mirror"
+reflectance = [0.9, 0.5, 0.2]
+
+[materials.black]
+kind = "diffuse"
+albedo = [0.0, 0.0, 0.0]
+
+[materials.white]
+kind = "diffuse"
+albedo = [1.0, 1.0, 1.0]
+
+[[lamps]]
+position = [0.0, -10.0, -10.0]
+spectrum = "D65"
+
+[[objects]]                 # a BK7 slab 0.2 thick, faces at z = +-0.1
+mesh = "slab.off"
+material = "glass"
+
+[[objects]]                 # a mirror plate at x = 10, its mirror face at z = -10.05
+mesh = "plate.off"
+material = "mirror"
+translate = [10.0, 0.0, -10.0]
+
+[[objects]]                 # a black wall behind the slab's camera: takes its reflections
+mesh = "wall.off"
+material = "black"
+translate = [0.0, 0.0, 8.0]
+
+[floor]                     # y = -20.x, white, under the lamp at (0, -10, -10)
+material = "white"
+"""
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """Write the meshes; return a function (camera, depth) -> RenderSetup."""
+    folder = tmp_path_factory.mktemp("synthetic")
+    for name, extents in (("slab", (2.0, 2.0, 0.2)), ("plate", (2.0, 2.0, 0.1)),
+                          ("wall", (40.0, 40.0, 1.0))):
+        box = trimesh.creation.box(extents=extents)
+        # Flat faces: no shared vertices, so each vertex normal is its face's normal (a
+        # box's shared corners would average three faces into a rounded shading normal).
+        box.unmerge_vertices()
+        box.export(folder / f"{name}.off")
+
+    def setup(eye, target, up=(0.0, 1.0, 0.0), vfov=10.0, size=9, depth=3):
+        path = folder / "scene.toml"
+        path.write_text(SYNTHETIC.format(eye=list(eye), target=list(target), up=list(up),
+                                         vfov=vfov, size=size, depth=depth))
+        return whitted.prepare(path)
+
+    return setup
+
+
+def test_slab_at_normal_incidence_transmits_t_squared(synthetic):
+    """Centre pixel through the BK7 slab, along -z: the transmitted light is T² of the sky
+    behind it (depth 3: in, out, seen), T = 1 - ((n - 1)/(n + 1))² per wavelength; the
+    reflections go back to the black wall. Deep, the internal reflections add up to
+    T² / (1 - R²) = (1 - R) / (1 + R)."""
+    setup = synthetic(eye=(0, 0, 5), target=(0, 0, 0), depth=3)
+    assert setup.spectral and setup.channels == 8
+    n = np.asarray(optics.GLASSES["BK7"][0] + optics.GLASSES["BK7"][1]
+                   / (np.asarray(setup.tables.wavelengths, np.float64) * 1e-3) ** 2)
+    r = ((n - 1) / (n + 1)) ** 2
+    t = 1 - r
+    direction = np.array([0.0, 0.0, -1.0])
+    sky = (np.asarray(rgb_to_reflectance(sky_rgb(direction), setup.tables), np.float64)
+           * np.asarray(setup.tables.illuminant, np.float64))
+    radiance, stats = whitted.render_radiance(setup, chunk=CHUNK)
+    centre = radiance[4, 4]
+    np.testing.assert_allclose(centre, t**2 * sky, rtol=1e-4)
+    assert stats.rays_per_level[0] == 81 * 8 and stats.truncated_weight > 0
+
+    deep, _ = whitted.render_radiance(setup, max_depth=16, chunk=CHUNK)
+    np.testing.assert_allclose(deep[4, 4], (1 - r) / (1 + r) * sky, rtol=1e-4)
+    assert np.all(deep[4, 4] > centre * (1 + 0.5 * r**2))  # the second pass is there
+
+
+def test_mirror_reflects_the_sky_times_its_reflectance(synthetic):
+    """A mirror plate facing the camera (-z): every reflected ray keeps its d_y, so sees the
+    sky of the camera ray's own direction, times the mirror's reflectance spectrum."""
+    size = 15
+    setup = synthetic(eye=(10, 0, -15), target=(10, 0, -10), vfov=30.0, size=size, depth=2)
+    rays = whitted.camera_level(setup, setup.camera())
+    level = whitted.shade_level(setup, rays, chunk=CHUNK)
+    mirror = (level.kinds == whitted.KIND_CODES["mirror"]).reshape(size * size, -1)[:, 0]
+    directions = rays.directions[:: setup.channels]
+    upper = mirror & (directions[:, 1] >= 0)  # reflections that never reach the floor
+    assert mirror.sum() > 0.3 * size * size and upper.sum() > 10
+    rho = np.asarray(rgb_to_reflectance(np.array([0.9, 0.5, 0.2]), setup.tables), np.float64)
+    sky = (np.asarray(rgb_to_reflectance(sky_rgb(directions), setup.tables), np.float64)
+           * np.asarray(setup.tables.illuminant, np.float64))
+    radiance, _ = whitted.render_radiance(setup, chunk=CHUNK)
+    radiance = radiance.reshape(size * size, -1)
+    np.testing.assert_allclose(radiance[upper], rho * sky[upper], rtol=1e-4, atol=1e-7)
+    # Around the plate the camera sees the black wall: nothing.
+    wall = level.kinds.reshape(size * size, -1)[:, 0] == whitted.KIND_CODES["diffuse"]
+    assert wall.sum() > 0 and np.all(radiance[wall] == 0)
+
+
+def test_white_floor_under_a_d65_lamp_is_white(synthetic):
+    """Looking straight down at the floor right under the lamp: n·l = 1, a white albedo, a
+    D65 lamp of intensity 1: Y = 1 and R = G = B (white) after encoding, in spectral mode."""
+    setup = synthetic(eye=(0, -10, -10), target=(0, -25, -10), up=(0, 0, -1), depth=2)
+    assert setup.spectral
+    radiance, stats = whitted.render_radiance(setup, chunk=CHUNK)
+    assert stats.shadow_rays == 81 * 8  # every pixel sees the lit floor
+    xyz = np.asarray(spectrum_to_xyz(radiance[4, 4].astype(np.float32), setup.tables))
+    assert abs(xyz[1] - 1) < 1e-4
+    image = whitted.to_srgb(radiance, setup)
+    centre = image[4, 4]
+    assert np.all(centre > 0.98) and np.ptp(centre) < 0.01, centre
+
+
+# --------------------------------------------------------------------------- the glass camel
+
+
+@camel
+@needs_camel
+def test_dielectric_conserves_weight(glass19k):
+    """Threshold 0: the children of a dielectric hit weigh R + T = 1 times their parent;
+    under total internal reflection one child carries the parent's whole weight."""
+    rays = whitted.camera_level(glass19k, glass19k.camera(24, 18))
+    glass = whitted.KIND_CODES["dielectric"]
+    seen_tir = 0
+    for _ in range(3):
+        level = whitted.shade_level(glass19k, rays, chunk=CHUNK)
+        at_glass = level.kinds == glass
+        kids = level.children
+        total = np.zeros(len(rays))
+        np.add.at(total, level.parents, kids.weights[:, 0])
+        count = np.bincount(level.parents, minlength=len(rays))
+        np.testing.assert_allclose(total[at_glass], rays.weights[at_glass, 0], rtol=1e-5)
+        tir = level.tir
+        assert np.all(at_glass[tir])
+        assert np.all(count[tir] == 1) and np.all(count[at_glass & ~tir] == 2)
+        np.testing.assert_array_equal(total[tir], rays.weights[tir, 0])
+        assert np.all(count[~at_glass] == 0)  # diffuse floor, sky: no children
+        seen_tir += int(tir.sum())
+        rays = kids
+    assert seen_tir > 0
+
+
+@camel
+@needs_camel
+def test_depth_converges(glass19k):
+    images, stats = whitted.render_radiance(glass19k, width=32, height=24, max_depth=8,
+                                            chunk=CHUNK, by_depth=True)
+    encoded = whitted.to_srgb(images, glass19k)
+    diffs = [float(np.abs(encoded[d + 1] - encoded[d]).mean()) for d in range(7)]
+    print("\nmean |I(d+1) - I(d)|, d = 1..7:", " ".join(f"{x:.4f}" for x in diffs))
+    print("rays per camera ray by depth:", " ".join(
+        f"{x:.3f}" for x in stats.rays_per_pixel_by_depth))
+    assert diffs[-1] < diffs[0] / 4
+    assert all(r <= 2**d for d, r in enumerate(stats.rays_per_pixel_by_depth))
+    # A render at depth 3 is levels 0..2 of the deeper one.
+    three, _ = whitted.render_radiance(glass19k, width=32, height=24, max_depth=3,
+                                       chunk=CHUNK)
+    np.testing.assert_allclose(three, images[2], rtol=1e-6, atol=1e-9)
+
+
+@camel
+@needs_camel
+def test_dispersion_adds_colour(glass19k):
+    """Against the same camel at B = 0 (one constant index, RGB mode)."""
+    A = optics.GLASSES["BK7"][0]
+    flat = whitted.prepare(camel_scene(**{'glass = "BK7"': f"cauchy = [{A}, 0.0]"}))
+    assert not flat.spectral and flat.channels == 3
+    size = dict(width=32, height=24, max_depth=4, chunk=CHUNK)
+    dispersed, _ = whitted.render_scene(glass19k, **size)
+    plain, _ = whitted.render_scene(flat, **size)
+    on_camel = primary_kinds(flat, 32, 24) == whitted.KIND_CODES["dielectric"]
+    assert on_camel.sum() > 50
+
+    def chroma_spread(image):
+        rgb = image[on_camel].astype(np.float64)
+        return float(np.std(rgb[:, 0] - rgb[:, 1]) + np.std(rgb[:, 1] - rgb[:, 2]))
+
+    print(f"\nchroma spread: dispersion {chroma_spread(dispersed):.4f}, "
+          f"B = 0 {chroma_spread(plain):.4f}")
+    assert chroma_spread(dispersed) > 1.5 * chroma_spread(plain)
+
+
+@camel
+@needs_camel
+@pytest.mark.parametrize("scale", [1.0, 1e3])
+def test_secondary_rays_leave_their_surface(glass19k, scale):
+    """No level-1 ray (reflected or refracted off the camel or the floor) hits the triangle
+    it leaves, at the camel's size and scaled by 1000 (the offset has no scene scale)."""
+    setup = glass19k if scale == 1.0 else whitted.prepare(
+        camel_scene(**{'material = "glass"': f'material = "glass"\nscale = {scale}'}),
+        samples=4)
+    size = setup.geometry.mesh.diagonal
+    rays = whitted.camera_level(setup, setup.camera(32, 24))
+    level1 = whitted.shade_level(setup, rays, chunk=CHUNK).children
+    level0 = whitted.shade_level(setup, rays, chunk=CHUNK)
+    level1 = level0.children
+    assert len(level1) > 500
+    level2 = whitted.shade_level(setup, level1, chunk=CHUNK)
+    own = level2.triangles == level1.sources
+    near = own & (level2.t < 1e-3 * size)
+    print(f"\nscale {scale:g}: {len(level1)} level-1 rays, {own.sum()} hit their own "
+          f"triangle, {near.sum()} within 1e-3 of the scene size")
+    assert own.sum() == 0 and near.sum() == 0
+    # The refracted rays (second child of a pair: reflected first, then refracted) went
+    # inside the closed camel: they meet the camel again, never the floor or the sky.
+    first = np.zeros(len(level1), bool)
+    first[np.unique(level0.parents, return_index=True)[1]] = True
+    refracted = ~first
+    assert refracted.sum() > 250
+    assert np.all(level2.kinds[refracted] == whitted.KIND_CODES["dielectric"])
+
+
+@camel
+@needs_camel
+def test_sampled_mode_converges_to_the_tree(glass19k):
+    size = dict(width=24, height=18, max_depth=4, chunk=CHUNK, threshold=0.0)
+    tree, tree_stats = whitted.render_radiance(glass19k, **size)
+    errors = []
+    for spp in (2, 8, 32):
+        sampled, stats = whitted.render_radiance(glass19k, mode="sampled", spp=spp,
+                                                 key=jax.random.PRNGKey(spp), **size)
+        # A path never branches: each level has at most the rays of the level before.
+        levels = stats.rays_per_level
+        assert all(b <= a for a, b in zip(levels, levels[1:], strict=False))
+        errors.append(float(np.abs(sampled - tree).mean()))
+    print("\nmean |sampled - tree|, spp 2, 8, 32:", " ".join(f"{e:.5f}" for e in errors))
+    assert errors[0] > errors[1] > errors[2] and errors[2] < errors[0] / 2.5
+    assert tree_stats.rays_per_level[1] > 0
+
+
+@camel
+@needs_camel
+def test_every_structure_gives_the_same_image(glass19k):
+    base = glass19k.scene
+    images = {}
+    for name in ("bvh", "grid", "kdtree"):
+        scene = dataclasses.replace(base, settings=dataclasses.replace(base.settings,
+                                                                       accel=name))
+        setup = glass19k if name == "bvh" else whitted.prepare(scene, samples=4)
+        assert setup.structure.kind == name
+        images[name], _ = whitted.render_scene(setup, width=24, height=18, max_depth=3,
+                                               chunk=CHUNK)
+    np.testing.assert_array_equal(images["grid"], images["bvh"])
+    np.testing.assert_array_equal(images["kdtree"], images["bvh"])
+
+
+# --------------------------------------------------------------------------- the CLI
+
+
+@camel
+@pytest.mark.skipif(not has_camel("camel"), reason="camel.off not found (set JRT_DATA)")
+def test_cli_renders_a_scene(tmp_path, capsys):
+    out = tmp_path / "glass.png"
+    code = main(["render", "--scene", "glass-camel", "-o", str(out), "--width", "32",
+                 "--height", "24", "--depth", "2", "--samples", "4"])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    image = io.imread(out)
+    assert image.shape == (24, 32, 3) and image.dtype == np.uint8
+    assert "32x24" in printed and "rays per level" in printed and "Mrays/s" in printed
+    assert "(4 channels)" in printed and "depth 2" in printed
+
+
+def test_cli_bad_scene_lists_the_builtins(tmp_path, capsys):
+    out = tmp_path / "x.png"
+    code = main(["render", "--scene", "no-such-scene", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("jrt render: error: ") and "no-such-scene" in err
+    assert all(name in err for name in BUILTIN_SCENES)
+    assert not out.exists()
