@@ -27,6 +27,7 @@ The schema (every table and field optional unless marked *required*; y is up)::
     kernel = "watertight"                 # one of jrt.KERNELS
     accel = "bvh"                         # one of accel.NAMES
     background = "black"                  # "black" or "sky"
+    fresnel = "exact"                     # "exact" (full equations) or "schlick" (ablation)
     ambient = 0.1                         # [0, 1]: share of a diffuse albedo always seen
 
     [materials.NAME]                      # one table per material, any name
@@ -83,6 +84,8 @@ from jrt.mesh import SUFFIXES, Mesh, MeshError, load_mesh, mesh_from_arrays
 Vec3 = tuple[float, float, float]
 
 KINDS = ("diffuse", "mirror", "dielectric")
+#: The Fresnel coefficients of a dielectric: jrt.optics.fresnel or jrt.optics.schlick.
+FRESNEL_MODELS = ("exact", "schlick")
 BACKGROUNDS = ("black", "sky")
 #: Common illuminant names for a lamp's ``spectrum``; any other name of colour-science's
 #: ``colour.SDS_ILLUMINANTS`` is accepted too (checked lazily, importing colour).
@@ -237,6 +240,7 @@ class Settings:
     accel: str = "bvh"
     background: str = "black"
     ambient: float = 0.1
+    fresnel: str = "exact"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -783,6 +787,7 @@ class _Reader:
             accel=self.choice(body, "accel", p, "bvh", tuple(accel.NAMES)),
             background=self.choice(body, "background", p, "black", BACKGROUNDS),
             ambient=self.number(body, "ambient", p, 0.1, 0.0, 1.0),
+            fresnel=self.choice(body, "fresnel", p, "exact", FRESNEL_MODELS),
         )
 
 

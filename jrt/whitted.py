@@ -18,7 +18,8 @@ spawns children:
   lamp; every surface, glass included, casts a shadow), the look of :mod:`jrt.render`. With
   no lamp, a diffuse surface shows ``w × albedo × ambient × illuminant``. No children;
 * **mirror**: one child, ``reflect(d, n)`` (seed eq. 2), weight ``w × reflectance``;
-* **dielectric**: Fresnel's ``(R, T)`` (unpolarised, :func:`jrt.optics.fresnel`) for the
+* **dielectric**: Fresnel's ``(R, T)`` (unpolarised, :func:`jrt.optics.fresnel`; Schlick's
+  approximation, :func:`jrt.optics.schlick`, with ``settings.fresnel = "schlick"``) for the
   indices on either side (outside: 1; inside: Cauchy's ``n(λ) = A + B/λ²``); children the
   reflected ray (seed eq. 2) with ``w × R`` and the refracted one (seed eq. 1) with ``w × T``;
   under total internal reflection ``R = 1`` and the reflected child is the only one.
@@ -429,6 +430,7 @@ class _Static:
     kernel: str
     sky: bool
     sampled: bool
+    schlick: bool  # Schlick's approximation instead of the full Fresnel equations
 
 
 def _normalise(v):
@@ -581,7 +583,8 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
     if f.dielectric:
         refr, tir = optics.refract(directions, normal, n1, n2)
         cos_i = -dot(directions, normal)
-        big_r, big_t = optics.fresnel(cos_i, n1, n2)  # R = 1, T = 0 under TIR
+        fresnel = optics.schlick if static.schlick else optics.fresnel
+        big_r, big_t = fresnel(cos_i, n1, n2)  # R = 1, T = 0 under TIR
         big_r, big_t = big_r[:, None], big_t[:, None]
         tir = tir & is_glass
         if static.sampled:
@@ -620,7 +623,8 @@ _COMPILED: dict = {}
 def _static(setup: RenderSetup, mode: str) -> _Static:
     features = dataclasses.replace(setup.features, max_depth=0, counters=False)
     return _Static(features=features, kernel=setup.scene.settings.kernel,
-                   sky=setup.scene.settings.background == "sky", sampled=mode == "sampled")
+                   sky=setup.scene.settings.background == "sky", sampled=mode == "sampled",
+                   schlick=setup.scene.settings.fresnel == "schlick")
 
 
 def _check_mode(mode: str) -> None:

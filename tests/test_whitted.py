@@ -214,6 +214,22 @@ def test_slab_at_normal_incidence_transmits_t_squared(synthetic):
     assert np.all(deep[4, 4] > centre * (1 + 0.5 * r**2))  # the second pass is there
 
 
+def test_schlick_is_an_option_of_the_scene(synthetic):
+    """settings.fresnel = "schlick": Schlick's R equals R0 = ((n-1)/(n+1))² at normal
+    incidence, so the slab's centre pixel is the same T² of the sky; at the slab's edges
+    (oblique incidence through the 10° view) the two models differ, by less than Schlick's
+    largest error for glass (0.036 in R)."""
+    exact = synthetic(eye=(0, 0, 5), target=(0, 0, 0), depth=3)
+    settings = dataclasses.replace(exact.scene.settings, fresnel="schlick")
+    schlick = whitted.prepare(dataclasses.replace(exact.scene, settings=settings))
+    want, _ = whitted.render_radiance(exact, chunk=CHUNK)
+    got, _ = whitted.render_radiance(schlick, chunk=CHUNK)
+    np.testing.assert_allclose(got[4, 4], want[4, 4], rtol=1e-5)
+    scale = np.abs(want).max()
+    assert np.abs(got - want).max() > 0  # a different model was compiled
+    assert np.abs(got - want).max() < 0.036 * scale
+
+
 def test_mirror_reflects_the_sky_times_its_reflectance(synthetic):
     """A mirror plate facing the camera (-z): every reflected ray keeps its d_y, so sees the
     sky of the camera ray's own direction, times the mirror's reflectance spectrum."""
