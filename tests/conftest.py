@@ -5,9 +5,14 @@ from __future__ import annotations
 import pytest
 
 import accel
-import jrt  # noqa: F401  (XLA flags before JAX starts)
+import jrt  # (XLA flags before JAX starts)
 from jrt.data import camel_path
 from jrt.mesh import load_mesh
+from jrt.raysets import camera_set, incoherent_set
+from jrt.trace import as_numpy
+
+#: Rays of each camel set that every structure's tests trace against brute force.
+CAMEL_RAYS = 20_000
 
 
 @pytest.fixture(scope="session")
@@ -52,3 +57,30 @@ def structure(request, camel_structures):
 def embree_camel(camel):
     peers = pytest.importorskip("benchmarks.peers")
     return peers.EmbreePeer(camel.vertices, camel.faces)
+
+
+@pytest.fixture(scope="session")
+def camel_rays(camel):
+    """The camel's camera and incoherent sets, CAMEL_RAYS each (the same count, so that
+    both share every compiled function)."""
+    origins, directions = camera_set(camel.vertices, CAMEL_RAYS)
+    return {
+        "camera": (origins[:CAMEL_RAYS], directions[:CAMEL_RAYS]),
+        "incoherent": incoherent_set(camel.vertices, CAMEL_RAYS, seed=0),
+    }
+
+
+@pytest.fixture(scope="session")
+def brute_hits(camel_brute, camel_rays):
+    """Brute force's closest hits per (kernel, ray set), computed once per session when
+    first asked (each costs 20k x 69k triangle tests)."""
+    cache = {}
+
+    def get(kernel, ray_set):
+        if (kernel, ray_set) not in cache:
+            origins, directions = camel_rays[ray_set]
+            cache[kernel, ray_set] = as_numpy(
+                jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
+        return cache[kernel, ray_set]
+
+    return get

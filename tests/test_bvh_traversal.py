@@ -37,11 +37,9 @@ import jrt
 from accel.structure import Structure
 from jrt.engine import StackOverflowError, TraversalError, iteration_budget
 from jrt.hits import TIE_RELATIVE
-from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
 KERNELS = list(jrt.KERNELS)
-RAYS = 20_000
 
 kernels = pytest.mark.parametrize("kernel", KERNELS)
 
@@ -76,31 +74,6 @@ def assert_same_hits(got: dict, want: dict, origins=None, directions=None, conte
 # ---------------------------------------------------------------------------------------------
 # The camel
 # ---------------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def camel_rays(camel):
-    # The same count in both sets, so that they share every compiled function.
-    origins, directions = camera_set(camel.vertices, RAYS)
-    return {
-        "camera": (origins[:RAYS], directions[:RAYS]),
-        "incoherent": incoherent_set(camel.vertices, RAYS, seed=0),
-    }
-
-
-@pytest.fixture(scope="module")
-def brute_hits(camel_brute, camel_rays):
-    """Brute force's closest hits per (kernel, ray set), computed once when first asked."""
-    cache = {}
-
-    def get(kernel, ray_set):
-        if (kernel, ray_set) not in cache:
-            origins, directions = camel_rays[ray_set]
-            cache[kernel, ray_set] = as_numpy(
-                jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
-        return cache[kernel, ray_set]
-
-    return get
 
 
 @kernels

@@ -7,7 +7,8 @@ libigl):
   along one axis only, so the ray's other two coordinates are the vertex's own;
 - the same through edge midpoints;
 - rays from random interior points aimed at random vertices.
-``watertight`` must have zero cracks, through brute force and through the BVH alike; the
+``watertight`` must have zero cracks under every structure (the `structure` fixture of
+conftest.py: brute force, BVH, kd-tree, octree, BSP tree, grid); the
 crack counts of the other two kernels are printed (they may leak).
 """
 

@@ -9,8 +9,8 @@ against the closed forms of the density rule (3-D, planar, thin, clamped); stati
 recomputed; parameter errors; empty, one-triangle, all-degenerate and flat meshes.
 
 Traversal: the same hits as brute force, bit for bit, with every kernel: on the camel (20k
-camera and 20k incoherent rays, closest hit and ``occluded``), from inside the closed camel
-(``watertight``: no ray through a crack), a hit found in a cell but lying beyond it, and
+camera and 20k incoherent rays, closest hit and ``occluded``),
+a hit found in a cell but lying beyond it, and
 random soups (hypothesis) whose axis-aligned flat triangles are moved exactly onto cell
 faces (some of them spanning many cells), with rays from origins exactly on cell faces and
 at grid corners, rays running inside a cell face (a ±0.0 direction component), and the
@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import test_bvh_traversal as bvh_tests
-import test_closed_mesh as closed_mesh_tests
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_bvh_traversal import (
@@ -57,10 +55,6 @@ PROPERTY = settings(max_examples=20, deadline=None, database=None)
 CELL_CAP = 1 << 14  # soup grids are padded to these shapes
 REFERENCE_CAP = 1 << 17
 
-# Shared fixtures: the camel's ray sets and brute force's hits on them, the crack rays.
-camel_rays = bvh_tests.camel_rays
-brute_hits = bvh_tests.brute_hits
-crack_rays = closed_mesh_tests.crack_rays
 
 
 @pytest.fixture(scope="module")
@@ -445,14 +439,6 @@ def test_camel_counters_and_plain_dda(camel, camel_grid, camel_rays, brute_hits)
     assert np.mean(tests != np.asarray(plain_count.tests)) < 1e-3
     assert steps.mean() < 0.5 * plain_steps.mean()
     assert tests.mean() < 0.01 * camel_grid.num_triangles
-
-
-def test_no_cracks_from_inside(camel_grid, crack_rays):
-    cracks = {}
-    for name, (origins, directions) in crack_rays.items():
-        hits = jrt.closest_hit(camel_grid, origins, directions, kernel="watertight")
-        cracks[name] = (int((np.asarray(hits.triangle) < 0).sum()), len(origins))
-    assert all(missed == 0 for missed, _ in cracks.values()), cracks
 
 
 def test_a_hit_beyond_its_cell_does_not_end_the_walk():

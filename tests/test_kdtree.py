@@ -7,13 +7,13 @@ exact triangle-box test: a triangle that touches a leaf's widened cell is refere
 leaf, unless it lies in the plane of a split above the leaf (Wald & Havran's planar rule
 sends those to one side), and a referenced triangle comes within the margin of the leaf.
 
-Traversal: the same hits as brute force, bit for bit, with every kernel: on the camel
-(20k camera and 20k incoherent rays, closest hit and ``occluded``), from inside the closed
-camel (``watertight``: no ray through a crack), on a layered mesh where triangles lie in
-the split planes, and on random soups (hypothesis) with axis-aligned flat triangles on the
-planes of a coarse grid (where the bins' planes fall), rays with ±0.0 direction components
-and origins exactly on split planes, some of them lying in the plane. The soups' trees are
-padded to fixed shapes so that every example runs the same compiled kernels.
+Traversal: the same hits as brute force, bit for bit, with every kernel: on the camel (20k
+camera and 20k incoherent rays, closest hit and ``occluded``), on a layered mesh where
+triangles lie in the split planes, and on random soups (hypothesis) with axis-aligned flat
+triangles on the planes of a coarse grid (where the bins' planes fall), rays with ±0.0
+direction components and origins exactly on split planes, some of them lying in the plane.
+The soups' trees are padded to fixed shapes so that every example runs the same compiled
+kernels.
 """
 
 from __future__ import annotations
@@ -22,8 +22,6 @@ import re
 
 import numpy as np
 import pytest
-import test_bvh_traversal as bvh_tests
-import test_closed_mesh as closed_mesh_tests
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_bvh_traversal import (
@@ -60,30 +58,6 @@ DEFAULTS = {"bins": kdtree.DEFAULT_BINS, "max_leaf_size": kdtree.DEFAULT_MAX_LEA
             "empty_bonus": kdtree.DEFAULT_EMPTY_BONUS}
 PROPERTY = settings(max_examples=20, deadline=None, database=None)
 
-# Shared fixtures: the camel's ray sets (as tests/test_bvh_traversal.py), brute force's hits
-# on them and the crack rays of tests/test_closed_mesh.py, computed once for this module and
-# tests/test_bsp.py (a module-level cache: the inputs are deterministic).
-camel_rays = bvh_tests.camel_rays
-_SHARED: dict = {}
-
-
-@pytest.fixture(scope="module")
-def brute_hits(camel_brute, camel_rays):
-    def get(kernel, ray_set):
-        if (kernel, ray_set) not in _SHARED:
-            origins, directions = camel_rays[ray_set]
-            _SHARED[kernel, ray_set] = as_numpy(
-                jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
-        return _SHARED[kernel, ray_set]
-
-    return get
-
-
-@pytest.fixture(scope="module")
-def crack_rays(camel):
-    if "cracks" not in _SHARED:
-        _SHARED["cracks"] = closed_mesh_tests.crack_rays.__wrapped__(camel)
-    return _SHARED["cracks"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -537,19 +511,6 @@ def check_counters(structure, ray_sets, brute):
 
 def test_camel_counters(camel_kdtree, camel_rays, brute_hits):
     check_counters(camel_kdtree, camel_rays, brute_hits)
-
-
-def check_no_cracks(structure, families):
-    cracks = {}
-    for name, (origins, directions) in families.items():
-        hits = jrt.closest_hit(structure, origins, directions, kernel="watertight")
-        cracks[name] = (int((np.asarray(hits.triangle) < 0).sum()), len(origins))
-    print(f"\n{structure.kind} / watertight: cracks (misses / rays): {cracks}")
-    assert all(missed == 0 for missed, _ in cracks.values()), cracks
-
-
-def test_no_cracks_from_inside(camel_kdtree, crack_rays):
-    check_no_cracks(camel_kdtree, crack_rays)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -8,8 +8,8 @@ shared exact triangle-box test on the widened leaf cell: a leaf references a tri
 only if the triangle touches the leaf's widened cell.
 
 Traversal: the same hits as brute force, bit for bit, with every kernel: on the camel (20k
-camera and 20k incoherent rays, closest hit and ``occluded``), from inside the closed camel
-(``watertight``: no ray through a crack), and on random soups (hypothesis) with axis-aligned
+camera and 20k incoherent rays, closest hit and ``occluded``),
+and on random soups (hypothesis) with axis-aligned
 flat triangles, triangles lying exactly in the octree's mid-planes and on the root cube's
 faces, rays with ±0.0 direction components, origins exactly on cell faces and at cell
 centres, rays lying in a mid-plane, and soups far from the origin. The soups' trees are
@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import test_bvh_traversal as bvh_tests
-import test_closed_mesh as closed_mesh_tests
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from test_bvh_build import chain, expected_ids, half_area, random_mesh, stacked
@@ -52,25 +50,6 @@ STAT_KEYS = {
     "leaves_over_max_depth", "sah_cost", "bytes",
 }
 PROPERTY = settings(max_examples=20, deadline=None, database=None)
-
-# The camel's ray sets as tests/test_bvh_traversal.py makes them, brute force's hits on
-# them computed once for this module, and the crack rays of tests/test_closed_mesh.py.
-camel_rays = bvh_tests.camel_rays
-crack_rays = closed_mesh_tests.crack_rays
-_BRUTE: dict = {}
-
-
-@pytest.fixture(scope="module")
-def brute_hits(camel_brute, camel_rays):
-    def get(kernel, ray_set):
-        if (kernel, ray_set) not in _BRUTE:
-            origins, directions = camel_rays[ray_set]
-            _BRUTE[kernel, ray_set] = as_numpy(
-                jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
-        return _BRUTE[kernel, ray_set]
-
-    return get
-
 
 @pytest.fixture(scope="module")
 def camel_octree(camel):
@@ -408,7 +387,7 @@ def test_non_finite_vertices_raise():
 
 
 # ---------------------------------------------------------------------------------------------
-# The camel: closest hit, occluded, counters, cracks
+# The camel: closest hit, occluded, counters
 # ---------------------------------------------------------------------------------------------
 
 
@@ -468,17 +447,6 @@ def test_camel_counters(camel_octree, camel_rays, brute_hits):
     # Any-hit follows the closest-hit traversal up to its first hit, then stops.
     for a, b in zip(occ, count, strict=True):
         assert (np.asarray(a) <= np.asarray(b)).all()
-
-
-def test_no_cracks_from_inside_the_closed_camel(camel_octree, crack_rays):
-    """tests/test_closed_mesh.py's rays (axis-aligned through vertices and edge midpoints
-    exactly, interior points to vertices), traced in one call (one compilation)."""
-    origins = np.concatenate([o for o, _ in crack_rays.values()])
-    directions = np.concatenate([d for _, d in crack_rays.values()])
-    hits = jrt.closest_hit(camel_octree, origins, directions, kernel="watertight")
-    missed = np.asarray(hits.triangle) < 0
-    family = np.repeat(list(crack_rays), [len(o) for o, _ in crack_rays.values()])
-    assert not missed.any(), {name: int(missed[family == name].sum()) for name in crack_rays}
 
 
 # ---------------------------------------------------------------------------------------------
