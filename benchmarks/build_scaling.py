@@ -6,6 +6,7 @@
 libigl's ``upsample`` splits every triangle in four (midpoint subdivision), so the meshes
 have N, 4N and 16N triangles. Reported: the median build time of each, the time per
 N log2 N (flat for O(N log N) growth) and the fitted exponent of time against N.
+The helpers here are shared with the suite (``benchmarks.suite``).
 """
 
 from __future__ import annotations
@@ -23,6 +24,45 @@ from benchmarks.common import write_record
 from benchmarks.structures import ENGINE_STRUCTURES, _structures
 
 
+def subdivide(vertices, faces, levels: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The mesh and its ``levels`` successive midpoint subdivisions (libigl ``upsample``).
+
+    Returns ``levels + 1`` pairs of float64 vertices and int64 faces: N, 4N, 16N, ...
+    triangles.
+    """
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    meshes = [(vertices, faces)]
+    for _ in range(levels):
+        vertices, faces = igl.upsample(vertices, faces, 1)
+        meshes.append((vertices, faces))
+    return meshes
+
+
+def build_times(name: str, vertices, faces, builds: int) -> tuple[list[float], object]:
+    """The build time (s) of each of ``builds`` builds, and the last structure built."""
+    times, structure = [], None
+    for _ in range(builds):
+        structure = accel.build(name, vertices, faces)
+        times.append(structure.stats["build_seconds"])
+    return times, structure
+
+
+def ns_per_n_log2_n(seconds: float, n: int) -> float:
+    """Time per N log2 N, in ns: flat when the time grows as N log N."""
+    return seconds / (n * math.log2(n)) * 1e9 if n > 1 else float("nan")
+
+
+def fit_exponent(counts, values) -> float:
+    """k of ``value ~ count^k``: the slope of log(value) against log(count), least squares.
+
+    NaN with fewer than two distinct counts.
+    """
+    counts, values = np.asarray(counts, float), np.asarray(values, float)
+    if len(np.unique(counts)) < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(counts), np.log(values), 1)[0])
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--levels", type=int, default=2, help="subdivision levels (default 2)")
@@ -33,26 +73,20 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
 
     mesh = jrt.load_mesh(jrt.camel_path())
-    vertices, faces = mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64)
-    meshes = [(vertices, faces)]
-    for _ in range(args.levels):
-        vertices, faces = igl.upsample(vertices, faces, 1)
-        meshes.append((vertices, faces))
+    meshes = subdivide(mesh.vertices, mesh.faces, args.levels)
     record = {"structures": {}}
     for name in args.structures:
         rows = []
         for vertices, faces in meshes:
-            times = [accel.build(name, vertices, faces).stats["build_seconds"]
-                     for _ in range(args.builds)]
+            times, _ = build_times(name, vertices, faces, args.builds)
             n = len(faces)
             seconds = statistics.median(times)
             rows.append({"triangles": n, "seconds_median": seconds, "seconds": times,
-                         "ns_per_n_log2_n": seconds / (n * math.log2(n)) * 1e9})
+                         "ns_per_n_log2_n": ns_per_n_log2_n(seconds, n)})
             print(f"{name:<7} {n:>10,} triangles: {seconds:7.3f} s, "
                   f"{rows[-1]['ns_per_n_log2_n']:.2f} ns per N log2 N", flush=True)
-        n = np.log([r["triangles"] for r in rows])
-        t = np.log([r["seconds_median"] for r in rows])
-        exponent = float(np.polyfit(n, t, 1)[0]) if len(rows) > 1 else float("nan")
+        exponent = fit_exponent([r["triangles"] for r in rows],
+                                [r["seconds_median"] for r in rows])
         print(f"{name:<7} fitted exponent: time ~ N^{exponent:.2f}", flush=True)
         record["structures"][name] = {"rows": rows, "exponent": exponent}
     write_record(record, args.json)

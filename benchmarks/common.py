@@ -1,26 +1,76 @@
-"""What every benchmark script shares: the best-of-n timer and the JSON record writer."""
+"""What every benchmark script shares: timers, summaries, and the JSON record writer."""
 
 from __future__ import annotations
 
 import json
+import math
+import statistics
 import time
 from pathlib import Path
+
+import numpy as np
+
+
+def jsonable(value):
+    """``value`` with NumPy scalars and arrays, tuples and paths turned into JSON types.
+
+    Non-finite floats become ``None`` (JSON has no NaN or infinity).
+    """
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [jsonable(v) for v in value.tolist()]
+    if isinstance(value, np.bool_ | bool):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating | float):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
 
 
 def write_record(record: dict, path: str) -> Path:
     """Write ``record`` as indented JSON to ``path`` (folders created) and say where."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2))
+    out.write_text(json.dumps(jsonable(record), indent=2, allow_nan=False))
     print(f"-> {out}")
     return out
 
 
-def best_time(fn, repeats: int) -> float:
-    """The shortest wall time of ``repeats`` calls of ``fn`` (seconds)."""
+def time_calls(fn, repeats: int) -> list[float]:
+    """Wall time of each of ``repeats`` calls of ``fn`` (seconds), in call order."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
         times.append(time.perf_counter() - start)
-    return min(times)
+    return times
+
+
+def best_time(fn, repeats: int) -> float:
+    """The shortest wall time of ``repeats`` calls of ``fn`` (seconds)."""
+    return min(time_calls(fn, repeats))
+
+
+def summary(values) -> dict:
+    """median, min, max and spread (max - min) of a list of numbers."""
+    values = [float(v) for v in values]
+    return {"median": statistics.median(values), "min": min(values), "max": max(values),
+            "spread": max(values) - min(values)}
+
+
+def rates(rays: int, seconds: list[float]) -> dict:
+    """Mrays/s from the times of repeated calls on ``rays`` rays: median, min, max.
+
+    The median rate is the rate of the median time; min and max come from the slowest and
+    the fastest call.
+    """
+    s = summary(seconds)
+    return {"median": rays / s["median"] / 1e6, "min": rays / s["max"] / 1e6,
+            "max": rays / s["min"] / 1e6}

@@ -1,4 +1,9 @@
-"""The ``jrt`` command line: ``jrt trace`` and ``jrt render``."""
+"""The ``jrt`` command line: ``jrt trace``, ``jrt render`` and the study's commands.
+
+``jrt bench`` hands its options to the benchmark suite (``benchmarks/suite.py``, also
+``python -m benchmarks``); the suite is imported only when the command runs, so the other
+commands do not pay for it.
+"""
 
 from __future__ import annotations
 
@@ -172,11 +177,34 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"skip the shadow rays{mesh_only}")
     common(render, scene_default=True)
     render.set_defaults(run=_cmd_render)
+
+    for name, _module, what in DELEGATED:
+        sub.add_parser(name, add_help=False, help=f"{what} (options: jrt {name} --help)")
     return parser
 
 
+#: Commands whose options belong to a module outside the library (imported when run).
+DELEGATED = (
+    ("bench", "benchmarks.suite",
+     "the benchmark suite: every structure on the camel beside Embree, JSON results"),
+)
+
+
+def _delegate(module: str, argv: list[str]) -> int:
+    import importlib
+
+    result = importlib.import_module(module).main(argv)
+    return result if isinstance(result, int) else 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    modules = {name: module for name, module, _ in DELEGATED}
+    if args.command in modules:
+        return _delegate(modules[args.command], extra)
+    if extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return args.run(args)
     except (MeshError, RaysFileError, FileNotFoundError, ValueError) as exc:

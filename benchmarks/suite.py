@@ -1,0 +1,1024 @@
+"""The benchmark suite: every structure on the camel, side by side with Embree, as JSON.
+
+    python -m benchmarks [--quick] [-o out/bench.json] [--structures bvh,grid]
+        [--device cpu|gpu] [--mesh camel|camel-19k|PATH] [--camera-size 1024] ...
+
+One run measures, in this order, and writes one record per measurement under
+``"records"`` (see ``benchmarks.schema`` for the layout, checked before writing):
+
+- ``build``: every structure's build time (median, min, max of ``--builds``) with its
+  statistics (nodes or cells, leaves, depth, references per leaf, bytes, SAH cost).
+- ``trace`` and ``peer``: five ray sets, traced by every structure and by Embree
+  (embreex, robust mode, one Python thread per core, in this same process): **camera**
+  rays (``--camera-size``², a 3/4 view whose framing is fitted so that the mesh fills the
+  frame), and ``--rays`` each of **shadow** rays (any-hit, from the camera hits that face
+  the lamp ``jrt.render.default_lamp``, toward it), **reflected** and **refracted** rays
+  (the glass camel's secondary rays at the camera hits, n = 1.5, through ``jrt.optics``)
+  and **incoherent** rays (``jrt.raysets.incoherent_set``). Derived rays start a small
+  offset off the surface along the geometric normal; they take the camera hits in raster
+  order (evenly spaced ones, or repeated up to ``--rays``), so that sets of one query share
+  one shape, and one compiled query (a compile costs seconds here). jrt's first call
+  (compile and run) is recorded apart; rates are the median, min and max of ``--repeats``
+  warm calls (``jax.block_until_ready``), and every row carries its ratio to Embree's
+  median rate on the same rays. Per ray: traversal steps, triangle tests, leaves (mean,
+  p95, max), from a separate run with the engine's counters. trimesh's rtree intersector
+  runs on ``--trimesh-rays`` of each set (one call, one thread); Open3D and Mitsuba 3
+  (llvm) when importable.
+- ``correctness``: every structure's hits on ``--brute-rays`` distinct rays of each set
+  (all of them, some repeated, when a set has fewer) against brute force (same kernel:
+  triangle, t, u, v bit for bit; ``occluded`` for shadow rays), and, for orientation,
+  against Embree's triangles on the whole set.
+- ``scaling``: the camel ladder 19k, 69k, 276k, 1.1M triangles (the last two by libigl's
+  ``upsample``; ``--scaling`` meshes of it): build time and camera-ray Mrays/s against N,
+  with fitted exponents; Embree on the same rays for the ratio.
+- ``cost_model``: per structure, wall time per ray ~ C_0 + C_TS x steps + C_IT x tests
+  fitted over the ray sets (Havran & Purgathofer 2003, "On comparing ray shooting
+  algorithms"), by non-negative least squares on relative errors; C_TS, C_IT and C_0 in
+  ns of wall time with all devices working.
+
+Ratios to Embree measured in the same run are the figures to quote: absolute times drift
+on a shared machine. ``--quick`` is CI's smoke test (the 19k camel, 64² rays a set, 2
+repeats, scaling over 19k and 69k).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import importlib.metadata
+import importlib.util
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+import accel
+import jrt  # noqa: F401  (XLA flags before JAX starts its backend)
+import jrt.raysets
+from benchmarks.build_scaling import build_times, fit_exponent, ns_per_n_log2_n, subdivide
+from benchmarks.common import jsonable, rates, summary, time_calls, write_record
+from benchmarks.structures import ENGINE_STRUCTURES, _structures
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+#: Defaults of a full run and of ``--quick``; any option given on the command line wins.
+DEFAULTS = {
+    "full": {"camera_size": 1024, "rays": 2**18, "builds": 5, "repeats": 5, "brute_rays": 4096,
+             "trimesh_rays": 256, "scaling": 4, "scaling_builds": 1, "scaling_repeats": 3},
+    "quick": {"camera_size": 64, "rays": 4096, "builds": 2, "repeats": 2, "brute_rays": 4096,
+              "trimesh_rays": 32, "scaling": 2, "scaling_builds": 1, "scaling_repeats": 2},
+}
+#: The ray sets, in the order they are traced, and their query.
+SETS = {"camera": "closest", "shadow": "occluded", "reflected": "closest",
+        "refracted": "closest", "incoherent": "closest"}
+GLASS_INDEX = 1.5  # the glass camel's index (seed: n = 1.5 for glass)
+OFFSET = 1e-4  # origin offset of derived rays, in units of the bounding-box diagonal
+FILL = 0.95  # the camera framing puts the mesh's farthest vertex at 95 % of the half-frame
+DEVICE_PLATFORMS = {"cpu": ("cpu",), "gpu": ("gpu", "cuda", "rocm")}
+
+
+class BenchError(ValueError):
+    """A suite option that cannot be honoured (the message says what is allowed)."""
+
+
+# --- Command line ---------------------------------------------------------------------------
+
+
+def _positive(value: str) -> int:
+    number = int(value)
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return number
+
+
+def _non_negative(value: str) -> int:
+    number = int(value)
+    if number < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
+    return number
+
+
+def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
+    """The suite's options (``jrt bench`` reuses them: pass ``add_help=False`` for parents)."""
+    full, quick = DEFAULTS["full"], DEFAULTS["quick"]
+
+    def default(key):
+        return f"default {full[key]}, --quick {quick[key]}"
+
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks", add_help=add_help,
+        description="Every acceleration structure on the camel beside Embree: build, trace "
+                    "(camera, shadow, reflected, refracted, incoherent rays), correctness, "
+                    "scaling and cost model, written as JSON.")
+    parser.add_argument("-o", "--output", default="out/bench.json",
+                        help="JSON results (default out/bench.json)")
+    parser.add_argument("--quick", action="store_true",
+                        help="CI's smoke test: the 19k camel, 64x64 rays a set, 2 repeats, "
+                             "two scaling meshes")
+    parser.add_argument("--structures", type=_structures, default=list(ENGINE_STRUCTURES),
+                        help=f"comma-separated, from {','.join(ENGINE_STRUCTURES)} "
+                             "(default all)")
+    parser.add_argument("--device", choices=tuple(DEVICE_PLATFORMS), default=None,
+                        help="the JAX device to trace on (default: JAX's default backend)")
+    parser.add_argument("--mesh", default=None,
+                        help="camel, camel-19k or a mesh file (default camel; --quick "
+                             "camel-19k when present)")
+    parser.add_argument("--kernel", default="watertight", choices=tuple(jrt.KERNELS))
+    parser.add_argument("--camera-size", type=_positive, default=None,
+                        help=f"camera image side in pixels ({default('camera_size')})")
+    parser.add_argument("--rays", type=_positive, default=None,
+                        help=f"rays of each other set: shadow, reflected, refracted, "
+                             f"incoherent ({default('rays')})")
+    parser.add_argument("--builds", type=_positive, default=None,
+                        help=f"builds per structure ({default('builds')})")
+    parser.add_argument("--repeats", type=_positive, default=None,
+                        help=f"warm timed calls per structure and set ({default('repeats')})")
+    parser.add_argument("--brute-rays", type=_positive, default=None,
+                        help=f"rays of each set checked against brute force "
+                             f"({default('brute_rays')})")
+    parser.add_argument("--trimesh-rays", type=_non_negative, default=None,
+                        help=f"rays of each set for trimesh's intersector, 0 to skip "
+                             f"({default('trimesh_rays')})")
+    parser.add_argument("--scaling", type=_non_negative, default=None,
+                        help=f"meshes of the scaling ladder 19k, 69k, 276k, 1.1M, 0 to skip "
+                             f"({default('scaling')})")
+    parser.add_argument("--scaling-builds", type=_positive, default=None,
+                        help=f"builds per structure of each scaling mesh other than the "
+                             f"main one ({default('scaling_builds')})")
+    parser.add_argument("--scaling-repeats", type=_positive, default=None,
+                        help=f"warm timed calls on each scaling mesh "
+                             f"({default('scaling_repeats')})")
+    parser.add_argument("--seed", type=int, default=0, help="incoherent rays' seed")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
+                        help="progress bars (default on)")
+    return parser
+
+
+def main(argv=None) -> dict:
+    """``python -m benchmarks``: parse, run, write the JSON; returns the results."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return run(args)
+    except BenchError as exc:
+        parser.exit(2, f"{parser.prog}: error: {exc}\n")
+
+
+# --- Machine --------------------------------------------------------------------------------
+
+
+def select_device(kind: str | None) -> list:
+    """The JAX devices the engine will split rays over, after honouring ``--device``.
+
+    ``cpu`` keeps JAX on its CPU backend (set before the backend starts, so even a machine
+    with a GPU traces on the cores); ``gpu`` requires a GPU backend. A device that is
+    absent is an error naming the ones present.
+    """
+    import jax
+    from jax._src import xla_bridge
+
+    if kind is None:
+        return list(jax.local_devices())
+    if kind not in DEVICE_PLATFORMS:
+        raise BenchError(f"unknown device {kind!r}; allowed: {', '.join(DEVICE_PLATFORMS)}")
+    if kind == "cpu" and not xla_bridge.backends_are_initialized():
+        jax.config.update("jax_platforms", "cpu")
+    try:
+        jax.devices(kind)
+    except RuntimeError:
+        present = ", ".join(f"{d.platform}:{d.id} ({d.device_kind})" for d in jax.devices())
+        raise BenchError(f"no {kind} device: JAX sees {present}; pass another --device "
+                         "or leave it out") from None
+    if jax.default_backend() not in DEVICE_PLATFORMS[kind]:
+        raise BenchError(
+            f"JAX's backend already started on {jax.default_backend()} in this process, and "
+            f"the traversal engine uses the default backend's devices; run the suite in a "
+            f"fresh process to trace on {kind}")
+    return list(jax.local_devices())
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _version(distribution: str, module: str | None = None) -> str | None:
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    try:
+        return str(importlib.import_module(module or distribution).__version__)
+    except (ImportError, AttributeError):
+        return None
+
+
+def git_commit() -> str | None:
+    """``git rev-parse HEAD`` of the project (read-only), or None outside a repository."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=PROJECT_ROOT, text=True,
+                             capture_output=True, timeout=10, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    commit = out.stdout.strip()
+    return commit if out.returncode == 0 and commit else None
+
+
+def machine_record(devices, requested: str | None) -> dict:
+    """CPU, cores, JAX devices, library versions, git commit and date."""
+    versions = {name: _version(dist, module) for name, dist, module in (
+        ("jrt", "jrt", None), ("jax", "jax", None), ("jaxlib", "jaxlib", None),
+        ("numpy", "numpy", None), ("embreex", "embreex", None), ("trimesh", "trimesh", None),
+        ("igl", "libigl", "igl"), ("colour", "colour-science", "colour"),
+        ("tqdm", "tqdm", None), ("rtree", "rtree", None))}
+    try:
+        affinity = len(os.sched_getaffinity(0))
+    except AttributeError:
+        affinity = os.cpu_count() or 1
+    return {
+        "cpu": _cpu_model(), "cores": os.cpu_count() or 1, "cores_usable": affinity,
+        "os": platform.platform(), "python": platform.python_version(),
+        "device": {"requested": requested, "platform": devices[0].platform,
+                   "kind": devices[0].device_kind, "count": len(devices),
+                   "devices": [str(d) for d in devices]},
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "versions": versions, "git_commit": git_commit(),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+
+
+# --- Rays -----------------------------------------------------------------------------------
+
+
+@dataclass
+class RaySet:
+    """One set of rays, float32 [N, 3] each, with the query it is traced with."""
+
+    name: str
+    query: str  # "closest" or "occluded"
+    origins: np.ndarray
+    directions: np.ndarray
+    tmax: np.ndarray | None
+    distinct: int  # its first ``distinct`` rays are distinct (the rest repeat them)
+    note: str = ""
+
+    @property
+    def rays(self) -> int:
+        return len(self.origins)
+
+
+def fitted_camera(vertices, size: int, fill: float = FILL) -> jrt.Camera:
+    """A square ``size``² 3/4 view (``jrt.frame_mesh``) whose mesh fills the frame.
+
+    ``frame_mesh`` fits the bounding sphere; here its margin is scaled until the farthest
+    vertex lies at ``fill`` of the half-frame (nothing is cut off).
+    """
+    v = np.asarray(vertices, np.float64)
+    margin = 0.85
+    for _ in range(6):
+        camera = jrt.frame_mesh(v, width=size, height=size, margin=margin)
+        eye, target = np.asarray(camera.eye), np.asarray(camera.target)
+        forward = (target - eye) / np.linalg.norm(target - eye)
+        right = np.cross(forward, camera.up)
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
+        rel = v - eye
+        depth = rel @ forward
+        half = math.tan(math.radians(camera.vfov) / 2)
+        extent = max(np.abs(rel @ right / depth).max(), np.abs(rel @ up / depth).max()) / half
+        if abs(extent - fill) < 1e-3:
+            break
+        margin *= extent / fill
+    return camera
+
+
+def _unit(x):
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _take(indices: np.ndarray, n: int) -> np.ndarray:
+    """``n`` of ``indices`` in their order: evenly spaced ones, or all repeated up to n."""
+    if len(indices) >= n:
+        return indices[np.floor(np.linspace(0, len(indices) - 1, n)).astype(np.int64)]
+    return np.resize(indices, n)
+
+
+def ray_sets(mesh, camera, embree, threads: int, seed: int, n: int) -> tuple[dict, dict]:
+    """The five ray sets (name -> RaySet) and what they were derived from.
+
+    Camera rays: one per pixel. The other sets have ``n`` rays each. Shadow and secondary
+    rays start at the camera rays' closest hits (Embree's, so that the sets do not depend
+    on the structures under test), taken in raster order: evenly spaced ones when there
+    are more than ``n``, repeated when there are fewer.
+    """
+    o, d = (np.asarray(a) for a in jrt.camera_rays(camera))
+    sets = {"camera": RaySet("camera", "closest", o, d, None, len(o))}
+    hits = embree.closest_hit(o, d, threads=threads)
+    hit = np.flatnonzero(hits["triangle"] >= 0)
+    info = {"camera_hits": int(hit.size)}
+    lamp = jrt.render.default_lamp(mesh, camera)
+    info["lamp"] = lamp.tolist()
+    if hit.size:
+        corners = mesh.vertices.astype(np.float64)[mesh.faces[hits["triangle"][hit]]]
+        u = hits["u"][hit, None].astype(np.float64)
+        v = hits["v"][hit, None].astype(np.float64)
+        point = (1 - u - v) * corners[:, 0] + u * corners[:, 1] + v * corners[:, 2]
+        normal = _unit(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+        incident = d[hit].astype(np.float64)
+        normal = np.where((np.sum(normal * incident, axis=1) > 0)[:, None], -normal, normal)
+        eps = OFFSET * mesh.diagonal
+        to_lamp = lamp.astype(np.float64) - point
+        dist = np.linalg.norm(to_lamp, axis=1)
+        light = to_lamp / dist[:, None]
+        lit = np.flatnonzero(np.sum(normal * light, axis=1) > 0)
+        info["lit_hits"] = int(lit.size)
+        if lit.size:
+            idx = _take(lit, n)
+            sets["shadow"] = RaySet(
+                "shadow", "occluded", (point[idx] + eps * normal[idx]).astype(np.float32),
+                light[idx].astype(np.float32), (dist[idx] - eps).astype(np.float32),
+                len(np.unique(idx)), "from the lamp-facing camera hits toward the lamp, tmax = "
+                               "the distance to it")
+        if importlib.util.find_spec("jrt.optics") is not None:
+            from jrt import optics
+
+            idx = _take(np.arange(hit.size), n)
+            l32, n32 = incident.astype(np.float32), normal.astype(np.float32)
+            reflected = _unit(np.asarray(optics.reflect(l32, n32), np.float64))
+            refracted, tir = optics.refract(l32, n32, 1.0, GLASS_INDEX)
+            refracted = _unit(np.asarray(refracted, np.float64))
+            info["total_internal_reflections"] = int(np.asarray(tir).sum())
+            sets["reflected"] = RaySet(
+                "reflected", "closest", (point + eps * normal)[idx].astype(np.float32),
+                reflected[idx].astype(np.float32), None, len(np.unique(idx)),
+                "jrt.optics.reflect at the camera hits")
+            sets["refracted"] = RaySet(
+                "refracted", "closest", (point - eps * normal)[idx].astype(np.float32),
+                refracted[idx].astype(np.float32), None, len(np.unique(idx)),
+                f"jrt.optics.refract at the camera hits, n = 1 -> {GLASS_INDEX}")
+        else:
+            info["secondary"] = "skipped: jrt.optics is not there"
+    io, idir = jrt.raysets.incoherent_set(mesh.vertices, n, seed=seed)
+    sets["incoherent"] = RaySet("incoherent", "closest", io, idir, None, n)
+    return {k: sets[k] for k in SETS if k in sets}, info
+
+
+# --- Peers ----------------------------------------------------------------------------------
+
+
+def _peer_row(peer, ray_set, seconds, embree_rate, rays=None, threads=None, note=""):
+    rays = ray_set.rays if rays is None else rays
+    rate = rates(rays, seconds)
+    return {"kind": "peer", "peer": peer, "set": ray_set.name, "query": ray_set.query,
+            "status": "ok", "note": note, "rays": rays, "threads": threads,
+            "repeats": seconds, "seconds": summary(seconds), "mrays_per_s": rate,
+            "ratio_to_embree": rate["median"] / embree_rate if embree_rate else None}
+
+
+def _absent_peer(peer, status, note) -> dict:
+    return {"kind": "peer", "peer": peer, "set": None, "query": None, "status": status,
+            "note": note, "rays": None, "threads": None, "repeats": [], "seconds": None,
+            "mrays_per_s": None, "ratio_to_embree": None}
+
+
+def _subset(ray_set: RaySet, count: int, seed: int, pad: bool = False) -> np.ndarray:
+    """Sorted indices of ``count`` distinct rays of a set (drawn from its distinct rows).
+
+    With ``pad``, a set with fewer distinct rays gives all of them, repeated up to
+    ``count`` (so that every set's subset has one shape, and one compiled query).
+    """
+    rng = np.random.default_rng(seed)
+    pool = ray_set.distinct
+    idx = np.sort(rng.choice(pool, min(count, pool), replace=False))
+    return np.resize(idx, count) if pad and len(idx) < count else idx
+
+
+def trimesh_rows(mesh, sets, embree_rates, count: int, seed: int, log) -> list[dict]:
+    """trimesh's rtree intersector (one thread, one call) on ``count`` rays of each set."""
+    if count == 0:
+        return [_absent_peer("trimesh", "skipped", "--trimesh-rays 0")]
+    try:
+        import trimesh
+        from trimesh.ray.ray_triangle import RayMeshIntersector
+
+        tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        intersector = RayMeshIntersector(tm)
+        tm.triangles_tree  # noqa: B018  (builds the rtree now, outside the timing)
+    except Exception as exc:  # noqa: BLE001  (any failure: recorded, the suite goes on)
+        log(f"trimesh: skipped ({type(exc).__name__}: {exc})")
+        return [_absent_peer("trimesh", "failed", f"{type(exc).__name__}: {exc}")]
+    rows = []
+    for ray_set in sets.values():
+        idx = _subset(ray_set, count, seed)
+        o = ray_set.origins[idx].astype(np.float64)
+        d = ray_set.directions[idx].astype(np.float64)
+        if ray_set.query == "occluded":
+            fn = lambda o=o, d=d: intersector.intersects_any(o, d)  # noqa: E731
+            note = ("intersects_any on infinite rays (the lamp lies outside the mesh's box, "
+                    "so nothing lies beyond it); one call, one thread")
+        else:
+            fn = lambda o=o, d=d: intersector.intersects_first(o, d)  # noqa: E731
+            note = "intersects_first; one call, one thread"
+        rows.append(_peer_row("trimesh", ray_set, time_calls(fn, 1),
+                              embree_rates[ray_set.name], rays=len(idx), threads=1, note=note))
+    return rows
+
+
+def open3d_rows(mesh, sets, embree_rates, repeats: int) -> list[dict]:
+    """Open3D's ``RaycastingScene`` (all cores), when installed."""
+    if importlib.util.find_spec("open3d") is None:
+        return [_absent_peer("open3d", "not installed", "pip install open3d (needs the "
+                                                        "system library libusb-1.0)")]
+    try:
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                            o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+        rows = []
+        for ray_set in sets.values():
+            if ray_set.query == "occluded":
+                # tfar is one number: scale each direction by its tmax and stop at t = 1.
+                d = ray_set.directions * ray_set.tmax[:, None]
+                rays = o3d.core.Tensor(np.hstack([ray_set.origins, d]).astype(np.float32))
+                fn = lambda rays=rays: scene.test_occlusions(rays, tfar=1.0).numpy()  # noqa: E731
+            else:
+                rays = o3d.core.Tensor(
+                    np.hstack([ray_set.origins, ray_set.directions]).astype(np.float32))
+                fn = lambda rays=rays: scene.cast_rays(rays)["t_hit"].numpy()  # noqa: E731
+            fn()
+            rows.append(_peer_row("open3d", ray_set, time_calls(fn, repeats),
+                                  embree_rates[ray_set.name], threads=os.cpu_count(),
+                                  note="RaycastingScene, all cores"))
+        return rows
+    except Exception as exc:  # noqa: BLE001
+        return [_absent_peer("open3d", "failed", f"{type(exc).__name__}: {exc}")]
+
+
+def mitsuba_rows(mesh, sets, embree_rates, repeats: int) -> list[dict]:
+    """Mitsuba 3's ``llvm_ad_rgb`` variant (ray_intersect_preliminary / ray_test)."""
+    if importlib.util.find_spec("mitsuba") is None:
+        return [_absent_peer("mitsuba", "not installed", "pip install mitsuba")]
+    try:
+        import drjit as dr
+        import mitsuba as mi
+
+        mi.set_variant("llvm_ad_rgb")
+        m = mi.Mesh("camel", vertex_count=len(mesh.vertices), face_count=len(mesh.faces),
+                    has_vertex_normals=False, has_vertex_texcoords=False)
+        params = mi.traverse(m)
+        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
+        params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
+        params.update()
+        scene = mi.load_dict({"type": "scene", "camel": m})
+        rows = []
+        for ray_set in sets.values():
+            o, d = ray_set.origins, ray_set.directions
+            ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, k]) for k in range(3))),
+                           mi.Vector3f(*(mi.Float(d[:, k]) for k in range(3))))
+            if ray_set.query == "occluded":
+                ray.maxt = mi.Float(ray_set.tmax)
+
+                def fn(ray=ray):
+                    out = scene.ray_test(ray)
+                    dr.eval(out)
+                    dr.sync_thread()
+            else:
+                def fn(ray=ray):
+                    out = scene.ray_intersect_preliminary(ray)
+                    dr.eval(out.t)
+                    dr.sync_thread()
+            fn()
+            rows.append(_peer_row("mitsuba", ray_set, time_calls(fn, repeats),
+                                  embree_rates[ray_set.name], threads=os.cpu_count(),
+                                  note="llvm_ad_rgb variant"))
+        return rows
+    except Exception as exc:  # noqa: BLE001
+        return [_absent_peer("mitsuba", "failed", f"{type(exc).__name__}: {exc}")]
+
+
+# --- Measurements ---------------------------------------------------------------------------
+
+
+def _first_stats(stats: dict, *keys):
+    for key in keys:
+        if key in stats:
+            return stats[key]
+    return None
+
+
+def build_record(name: str, mesh_name: str, triangles: int, times, structure) -> dict:
+    st = dict(structure.stats)
+    return {
+        "kind": "build", "structure": name, "mesh": mesh_name, "triangles": triangles,
+        "repeats": times, "seconds": summary(times),
+        "nodes": _first_stats(st, "nodes", "cells"), "leaves": st.get("leaves"),
+        "depth": st.get("depth"),
+        "references_per_leaf_mean": _first_stats(
+            st, "references_per_leaf_mean", "triangles_per_leaf_mean"),
+        "references_per_leaf_max": _first_stats(
+            st, "references_per_leaf_max", "triangles_per_leaf_max"),
+        "bytes": st.get("bytes", structure.nbytes), "sah_cost": st.get("sah_cost"),
+        "stats": st,
+    }
+
+
+def _counter_summary(counts) -> dict:
+    out = {}
+    for key, values in counts._asdict().items():
+        values = np.asarray(values)
+        out[key] = {"mean": float(values.mean()), "p95": float(np.percentile(values, 95)),
+                    "max": int(values.max())}
+    return out
+
+
+class Tracer:
+    """Runs jrt's queries: one call, or the timed repeats of one structure on one set."""
+
+    def __init__(self, kernel: str, repeats: int):
+        self.kernel = kernel
+        self.repeats = repeats
+
+    def call(self, structure, arrays, query: str, counters: bool = False):
+        import jax
+
+        o, d, tmax = arrays
+        if query == "occluded":
+            out = jrt.occluded(structure, o, d, tmax, kernel=self.kernel, counters=counters)
+        else:
+            out = jrt.closest_hit(structure, o, d, kernel=self.kernel, tmax=tmax,
+                                  counters=counters)
+        return jax.block_until_ready(out)
+
+    def measure(self, structure, arrays, query: str) -> dict:
+        """The timed repeats (the first one's hits are kept), then the counters.
+
+        The query was compiled before (:func:`first_calls`), so every repeat is warm.
+        """
+        kept = []
+
+        def call():
+            out = self.call(structure, arrays, query)
+            if not kept:
+                kept.append(out)
+
+        times = time_calls(call, self.repeats)
+        first = kept[0]
+        _, counts = self.call(structure, arrays, query, counters=True)
+        if query == "occluded":
+            result = {"occluded": np.asarray(first)}
+        else:
+            result = {k: np.asarray(v) for k, v in first._asdict().items()}
+        return {"result": result, "times": times, "counters": _counter_summary(counts)}
+
+
+def first_calls(tasks, quiet: bool, desc: str) -> dict:
+    """Run each ``(key, fn)`` once, one after the other; key -> wall seconds.
+
+    These are the first calls, which compile (XLA compiles on one thread, and two compiles
+    side by side in threads took as long as one after the other on this machine).
+    """
+    out = {}
+    for key, fn in tqdm(tasks, desc=desc, disable=quiet, leave=False):
+        start = time.perf_counter()
+        fn()
+        out[key] = time.perf_counter() - start
+    return out
+
+
+def _device_arrays(ray_set: RaySet):
+    import jax
+
+    tmax = None if ray_set.tmax is None else jax.device_put(ray_set.tmax)
+    return jax.device_put(ray_set.origins), jax.device_put(ray_set.directions), tmax
+
+
+def _brute_reference(brute, ray_set: RaySet, idx, kernel: str) -> dict:
+    o, d = ray_set.origins[idx], ray_set.directions[idx]
+    if ray_set.query == "occluded":
+        return {"occluded": np.asarray(jrt.occluded(brute, o, d, ray_set.tmax[idx],
+                                                    kernel=kernel))}
+    return {k: np.asarray(v) for k, v in jrt.closest_hit(brute, o, d, kernel=kernel)
+            ._asdict().items()}
+
+
+def correctness_record(name, ray_set, idx, ours, reference, embree_result) -> dict:
+    fields = {}
+    differ = np.zeros(len(idx), bool)
+    for key, ref in reference.items():
+        mine = ours[key][idx]
+        bad = mine != ref
+        fields[key] = int(bad.sum())
+        differ |= bad
+    if ray_set.query == "occluded":
+        reference_hits = int(reference["occluded"].sum())
+        embree_differ = ours["occluded"] != embree_result
+    else:
+        reference_hits = int((reference["triangle"] >= 0).sum())
+        embree_differ = ours["triangle"] != embree_result["triangle"]
+    return {"kind": "correctness", "structure": name, "set": ray_set.name,
+            "query": ray_set.query, "reference": "brute", "rays": len(idx),
+            "reference_hits": reference_hits, "mismatches": int(differ.sum()),
+            "mismatches_by_field": fields, "embree_rays": ray_set.rays,
+            "embree_disagreements": int(embree_differ.sum()),
+            "note": "bit for bit against brute force with the same kernel; Embree uses its "
+                    "own kernel, so a few disagreements on edges are expected"}
+
+
+def _embree_call(embree, ray_set: RaySet, threads: int):
+    if ray_set.query == "occluded":
+        return lambda: embree.occluded(ray_set.origins, ray_set.directions, ray_set.tmax,
+                                       threads=threads)
+    return lambda: embree.closest_hit(ray_set.origins, ray_set.directions, threads=threads)
+
+
+def cost_model(name: str, traces: list[dict]) -> dict:
+    """Fit the time per ray to the per-ray counters over the sets (Havran & Purgathofer).
+
+    time / rays ~ C_0 + C_TS x steps + C_IT x tests, with steps and tests the sets' mean
+    counts: Havran and Purgathofer's C_TS (a traversal step) and C_IT (a triangle test),
+    plus C_0, what a ray costs whatever its path (loading and storing it, the lanes'
+    refill, the call's fixed cost spread over the rays). Non-negative least squares on
+    relative errors (each set weighs the same): every subset of the three terms is fitted
+    and the feasible one with the least error kept. The residual is the root mean square
+    of the relative errors of the fitted times.
+    """
+    steps = np.array([t["counters"]["steps"]["mean"] for t in traces])
+    tests = np.array([t["counters"]["tests"]["mean"] for t in traces])
+    per_ray = np.array([t["seconds"]["median"] / t["rays"] for t in traces])
+    a = np.stack([steps, tests, np.ones_like(steps)], axis=1) / per_ray[:, None]
+    b = np.ones(len(traces))
+    best = (np.zeros(3), float("nan"))
+    for columns in ((0, 1, 2), (0, 1), (0, 2), (1, 2), (0,), (1,), (2,)):
+        if len(columns) > len(traces):
+            continue
+        sol = np.linalg.lstsq(a[:, columns], b, rcond=None)[0]
+        if np.any(sol < 0):
+            continue
+        coef = np.zeros(3)
+        coef[list(columns)] = sol
+        err = float(np.sqrt(np.mean((a @ coef - b) ** 2)))
+        if not err >= best[1] - 1e-12:  # also true while best is NaN
+            best = (coef, err)
+    coef, residual = best
+    points = [{"set": t["set"], "query": t["query"], "rays": t["rays"],
+               "seconds": t["seconds"]["median"], "steps_mean": s, "tests_mean": c,
+               "predicted_seconds": t["rays"] * (coef[0] * s + coef[1] * c + coef[2])}
+              for t, s, c in zip(traces, steps, tests, strict=True)]
+    return {"kind": "cost_model", "structure": name, "c_ts_ns": coef[0] * 1e9,
+            "c_it_ns": coef[1] * 1e9, "c_ray_ns": coef[2] * 1e9, "residual": residual,
+            "points": points,
+            "fit": "time/rays ~ C_0 + C_TS steps + C_IT tests; non-negative least squares "
+                   "of relative errors over the ray sets",
+            "time_basis": "wall clock with all devices working"}
+
+
+def scaling_ladder(mesh, mesh_label: str, count: int) -> list[tuple[str, object]]:
+    """(label, mesh) of the scaling meshes: camel-19k, camel, camel x4, camel x16.
+
+    A mesh other than the camels gives itself and its subdivisions. Meshes are loaded or
+    subdivided here, in the ladder's order, and only as many as asked for.
+    """
+    if count == 0:
+        return []
+    camels = {"camel-19k", "camel"}
+    ladder = []
+    if mesh_label in camels:
+        for label in ("camel-19k", "camel"):
+            if jrt.data.has_camel(label):
+                ladder.append((label, lambda label=label: jrt.load_mesh(jrt.camel_path(label))))
+        base_label, base = "camel", lambda: jrt.load_mesh(jrt.camel_path("camel"))
+    else:
+        ladder.append((mesh_label, lambda: mesh))
+        base_label, base = mesh_label, lambda: mesh
+    for level in (1, 2, 3):
+        def upsampled(level=level):
+            b = base()
+            v, f = subdivide(b.vertices, b.faces, level)[-1]
+            return jrt.mesh_from_arrays(v.astype(np.float32), f.astype(np.int32),
+                                        name=f"{base_label} x{4 ** level}")
+        ladder.append((f"{base_label} x{4 ** level}", upsampled))
+    return ladder[:count]
+
+
+# --- The run --------------------------------------------------------------------------------
+
+
+def _resolve(args) -> dict:
+    mode = "quick" if args.quick else "full"
+    params = {k: getattr(args, k) if getattr(args, k, None) is not None else v
+              for k, v in DEFAULTS[mode].items()}
+    mesh_arg = args.mesh
+    if mesh_arg is None:
+        mesh_arg = "camel-19k" if args.quick and jrt.data.has_camel("camel-19k") else "camel"
+    params["mesh"] = mesh_arg
+    return params
+
+
+def _load(mesh_arg: str):
+    try:
+        if mesh_arg in jrt.data.MESHES:
+            return jrt.load_mesh(jrt.camel_path(mesh_arg))
+        return jrt.load_mesh(mesh_arg)
+    except (FileNotFoundError, jrt.MeshError) as exc:
+        raise BenchError(str(exc)) from None
+
+
+def run(args) -> dict:
+    """Run the suite with parsed options (``build_parser().parse_args(...)``)."""
+    wall_start = time.perf_counter()
+    devices = select_device(args.device)
+    import jax
+
+    import jrt.render  # noqa: F401  (default_lamp)
+    from benchmarks.peers import EmbreePeer
+
+    p = _resolve(args)
+    quiet = not args.progress
+
+    def log(message):
+        tqdm.write(message, file=sys.stdout)
+        sys.stdout.flush()
+
+    mesh = _load(p["mesh"])
+    names = list(args.structures)
+    threads = os.cpu_count() or 1
+    machine = machine_record(devices, args.device)
+    log(f"{mesh.summary()} | {machine['device']['count']} {machine['device']['platform']} "
+        f"device(s), {machine['cores']} cores | structures {', '.join(names)}")
+    records, notes = [], []
+
+    # Builds.
+    built = {}
+    for name in tqdm(names, desc="build", disable=quiet, leave=False):
+        times, structure = build_times(name, mesh.vertices, mesh.faces, p["builds"])
+        built[name] = structure
+        rec = build_record(name, p["mesh"], len(mesh.faces), times, structure)
+        records.append(rec)
+        log(f"build {name:<7} {rec['seconds']['median']:7.3f} s (min {rec['seconds']['min']:.3f}"
+            f", max {rec['seconds']['max']:.3f}), {rec['nodes']:,} nodes, {rec['leaves']:,} "
+            f"leaves, depth {rec['depth']}, {rec['bytes'] / 2**20:.1f} MiB, "
+            f"SAH {rec['sah_cost']:.3g}")
+
+    # Rays and Embree.
+    camera = fitted_camera(mesh.vertices, p["camera_size"])
+    try:
+        embree = EmbreePeer(mesh.vertices, mesh.faces)
+    except ImportError as exc:
+        raise BenchError(f"the suite measures against Embree and needs embreex "
+                         f"(pip install -e '.[dev]'): {exc}") from None
+    sets, derived = ray_sets(mesh, camera, embree, threads, args.seed, p["rays"])
+    if "secondary" in derived:
+        notes.append(f"reflected and refracted rays {derived['secondary']}")
+    if "shadow" not in sets:
+        notes.append("no shadow rays: no camera hit faces the lamp")
+    log("ray sets: " + ", ".join(f"{s.name} ({s.query}, {s.rays:,} rays, {s.distinct:,} "
+                                 "distinct)" for s in sets.values()))
+    arrays = {name: _device_arrays(s) for name, s in sets.items()}
+
+    # First calls (compile): per structure, each query and number of rays, with and
+    # without counters, and brute force on the correctness subsets; each on the first
+    # set of its kind (the others share the compiled code).
+    brute = accel.build("brute", mesh.vertices, mesh.faces)
+    tracer = Tracer(args.kernel, p["repeats"])
+    subsets = {name: _subset(s, p["brute_rays"], args.seed + 1, pad=True)
+               for name, s in sets.items()}
+    first_set = {}
+    for s in sets.values():
+        first_set.setdefault((s.query, s.rays), s.name)
+    tasks = []
+    for (query, _), set_name in first_set.items():
+        for name in names:
+            for counters in (False, True):
+                tasks.append(((name, set_name, counters), lambda s=built[name],
+                              a=arrays[set_name], q=query, c=counters: tracer.call(s, a, q, c)))
+    for query in dict.fromkeys(s.query for s in sets.values()):
+        s = next(s for s in sets.values() if s.query == query)
+        tasks.append((("brute", s.name, False), lambda s=s: _brute_reference(
+            brute, s, subsets[s.name], args.kernel)))
+    first = first_calls(tasks, quiet, "compile")
+    log("first calls (compile and run): " + ", ".join(
+        f"{k[0]} {sets[k[1]].query} "
+        f"{p['brute_rays'] if k[0] == 'brute' else sets[k[1]].rays:,}"
+        f"{' +counters' if k[2] else ''} {v:.1f} s" for k, v in first.items()))
+
+    # Traces, Embree, correctness.
+    traces = {name: [] for name in names}
+    embree_rates = {}
+    bar = tqdm(total=len(sets) * len(names), desc="trace", disable=quiet, leave=False)
+    for ray_set in sets.values():
+        emb = _embree_call(embree, ray_set, threads)
+        embree_result = emb()  # warm-up, and the hits to compare with
+        seconds = time_calls(emb, p["repeats"])
+        row = _peer_row("embree", ray_set, seconds, None, threads=threads,
+                        note="embreex robust mode, one Python thread per core")
+        embree_rates[ray_set.name] = row["mrays_per_s"]["median"]
+        row["ratio_to_embree"] = 1.0
+        records.append(row)
+        log(f"{ray_set.name:<10} embree   {row['mrays_per_s']['median']:8.3f} Mrays/s")
+        idx = subsets[ray_set.name]
+        reference = _brute_reference(brute, ray_set, idx, args.kernel)
+        for name in names:
+            m = tracer.measure(built[name], arrays[ray_set.name], ray_set.query)
+            rate = rates(ray_set.rays, m["times"])
+            result = m["result"]
+            hits = (int(result["occluded"].sum()) if ray_set.query == "occluded"
+                    else int((result["triangle"] >= 0).sum()))
+            first_of = first_set[(ray_set.query, ray_set.rays)]
+            rec = {"kind": "trace", "structure": name, "set": ray_set.name,
+                   "query": ray_set.query, "rays": ray_set.rays,
+                   "distinct_rays": ray_set.distinct, "hits": hits,
+                   "first_call_set": first_of,
+                   "first_call_seconds": first[(name, first_of, False)],
+                   "counters_first_call_seconds": first[(name, first_of, True)],
+                   "repeats": m["times"], "seconds": summary(m["times"]),
+                   "mrays_per_s": rate, "embree_mrays_per_s": embree_rates[ray_set.name],
+                   "ratio_to_embree": rate["median"] / embree_rates[ray_set.name],
+                   "counters": m["counters"]}
+            records.append(rec)
+            traces[name].append(rec)
+            check = correctness_record(name, ray_set, idx, result, reference, embree_result)
+            records.append(check)
+            c = rec["counters"]
+            log(f"{ray_set.name:<10} {name:<8} {rate['median']:8.3f} Mrays/s "
+                f"(x{rec['ratio_to_embree']:.3f} Embree), steps {c['steps']['mean']:.1f}, "
+                f"tests {c['tests']['mean']:.1f}, leaves {c['leaves']['mean']:.1f}; "
+                f"{check['mismatches']} mismatches of {check['rays']:,} vs brute")
+            bar.update()
+    bar.close()
+    # Compile time apart: the first call less a warm call on the same set.
+    for name in names:
+        for rec in traces[name]:
+            warm = next(t for t in traces[name] if t["set"] == rec["first_call_set"])
+            rec["compile_seconds"] = max(rec["first_call_seconds"] - warm["seconds"]["median"],
+                                         0.0)
+    del arrays
+
+    # Other peers.
+    for rows in (trimesh_rows(mesh, sets, embree_rates, p["trimesh_rays"], args.seed + 2, log),
+                 open3d_rows(mesh, sets, embree_rates, p["repeats"]),
+                 mitsuba_rows(mesh, sets, embree_rates, p["repeats"])):
+        records.extend(rows)
+        for r in rows:
+            if r["status"] == "ok":
+                log(f"{r['set']:<10} {r['peer']:<8} {r['mrays_per_s']['median']:10.6f} Mrays/s "
+                    f"(x{r['ratio_to_embree']:.6f} Embree) on {r['rays']:,} rays")
+            else:
+                log(f"{r['peer']}: {r['status']} ({r['note']})")
+
+    # Scaling.
+    records.extend(scaling_records(mesh, p, names, traces, records, tracer, threads,
+                                   EmbreePeer, quiet, log))
+
+    # Cost model.
+    for name in names:
+        rec = cost_model(name, traces[name])
+        records.append(rec)
+        log(f"cost model {name:<7} C_TS {rec['c_ts_ns']:.2f} ns, C_IT {rec['c_it_ns']:.2f} ns, "
+            f"C_0 {rec['c_ray_ns']:.2f} ns, residual {rec['residual']:.1%}")
+
+    results = {
+        "schema": "jrt-bench/1", "machine": machine,
+        "parameters": {
+            "quick": bool(args.quick), "mesh": p["mesh"], "mesh_summary": mesh.summary(),
+            "triangles": len(mesh.faces), "structures": names, "kernel": args.kernel,
+            "device": args.device, "camera": {
+                "width": camera.width, "height": camera.height, "eye": camera.eye,
+                "target": camera.target, "vfov": camera.vfov, "fill": FILL},
+            "camera_rays": camera.num_rays, "rays": p["rays"], "sets": [
+                {"name": s.name, "query": s.query, "rays": s.rays, "distinct_rays": s.distinct,
+                 "note": s.note} for s in sets.values()],
+            "derived_from": derived, "ray_offset": OFFSET * mesh.diagonal,
+            "glass_index": GLASS_INDEX, "builds": p["builds"], "repeats": p["repeats"],
+            "brute_rays": p["brute_rays"], "trimesh_rays": p["trimesh_rays"],
+            "scaling_meshes": p["scaling"], "scaling_builds": p["scaling_builds"],
+            "scaling_repeats": p["scaling_repeats"], "embree_threads": threads,
+            "seed": args.seed,
+            "jax_devices": len(jax.local_devices()),
+        },
+        "records": records, "notes": notes,
+        "wall_seconds": time.perf_counter() - wall_start,
+    }
+    results = jsonable(results)
+    from benchmarks.schema import validate
+
+    validate(results)
+    log(headline(results))
+    write_record(results, args.output)
+    log(f"suite: {results['wall_seconds']:.0f} s")
+    return results
+
+
+def headline(results: dict) -> str:
+    """A Markdown table of the run: per structure, build time, and per set Mrays/s with
+    the ratio to Embree (the figures to quote)."""
+    records = results["records"]
+    sets = [s["name"] for s in results["parameters"]["sets"]]
+    builds = {r["structure"]: r for r in records if r["kind"] == "build"}
+    traces = {(r["structure"], r["set"]): r for r in records if r["kind"] == "trace"}
+    embree = {r["set"]: r for r in records if r["kind"] == "peer" and r["peer"] == "embree"}
+    lines = ["| structure | build (s) | " + " | ".join(
+                 f"{s} Mrays/s (x Embree)" for s in sets) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in sets) + " |",
+             "| embree | | " + " | ".join(
+                 f"{embree[s]['mrays_per_s']['median']:.2f} (1)" for s in sets) + " |"]
+    for name in results["parameters"]["structures"]:
+        cells = [f"{traces[name, s]['mrays_per_s']['median']:.3f} "
+                 f"({traces[name, s]['ratio_to_embree']:.3f})" for s in sets]
+        lines.append(f"| {name} | {builds[name]['seconds']['median']:.2f} | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def scaling_records(mesh, p, names, traces, records, tracer, threads, embree_cls, quiet,
+                    log) -> list[dict]:
+    """Build time and camera-ray Mrays/s against N; one record per structure."""
+    ladder = scaling_ladder(mesh, p["mesh"], p["scaling"])
+    if not ladder:
+        return []
+    rows = {name: [] for name in names}
+    main_builds = {r["structure"]: r for r in records if r["kind"] == "build"}
+    main_embree = next(r for r in records if r["kind"] == "peer" and r["peer"] == "embree"
+                       and r["set"] == "camera")
+    n = p["camera_size"] ** 2
+    bar = tqdm(total=len(ladder) * len(names), desc="scaling", disable=quiet, leave=False)
+    for label, load in ladder:
+        if label == p["mesh"]:
+            for name in names:
+                trace = next(t for t in traces[name] if t["set"] == "camera")
+                b = main_builds[name]
+                rows[name].append(_scaling_row(
+                    label, b["triangles"], b["repeats"], trace["repeats"], trace["rays"],
+                    trace["first_call_seconds"], main_embree["mrays_per_s"]["median"], True))
+                bar.update()
+            continue
+        m = load()
+        camera = fitted_camera(m.vertices, p["camera_size"])
+        o, d = (np.asarray(a) for a in jrt.camera_rays(camera))
+        embree = embree_cls(m.vertices, m.faces)
+        embree.closest_hit(o, d, threads=threads)
+        emb_rate = rates(n, time_calls(lambda o=o, d=d, e=embree: e.closest_hit(
+            o, d, threads=threads), p["scaling_repeats"]))["median"]
+        del embree
+        arrays = _device_arrays(RaySet("camera", "closest", o, d, None, n))
+        built = {}
+        for name in names:
+            built[name] = build_times(name, m.vertices, m.faces, p["scaling_builds"])
+        first = first_calls([(name, lambda s=s, a=arrays: tracer.call(s, a, "closest"))
+                             for name, (_, s) in built.items()], quiet, "compile")
+        for name in names:
+            times, structure = built.pop(name)
+            trace_times = time_calls(lambda s=structure, a=arrays: tracer.call(s, a, "closest"),
+                                     p["scaling_repeats"])
+            rows[name].append(_scaling_row(label, len(m.faces), times, trace_times, n,
+                                           first[name], emb_rate, False))
+            r = rows[name][-1]
+            log(f"scaling {name:<7} {label:<10} {len(m.faces):>9,} triangles: build "
+                f"{r['build_seconds']['median']:.2f} s, {r['mrays_per_s']['median']:.3f} "
+                f"Mrays/s (x{r['ratio_to_embree']:.3f} Embree)")
+            bar.update()
+    bar.close()
+    out = []
+    for name in names:
+        r = rows[name]
+        counts = [row["triangles"] for row in r]
+        out.append({
+            "kind": "scaling", "structure": name, "set": "camera", "rays": n, "rows": r,
+            "build_exponent": fit_exponent(counts, [row["build_seconds"]["median"]
+                                                    for row in r]),
+            "trace_exponent": fit_exponent(counts, [row["trace_seconds"]["median"]
+                                                    for row in r]),
+            "note": "exponents: slope of log(time) against log(N); the trace time is for a "
+                    "fixed number of camera rays"})
+        log(f"scaling {name:<7} build ~ N^{out[-1]['build_exponent']:.2f}, trace time ~ "
+            f"N^{out[-1]['trace_exponent']:.2f}")
+    return out
+
+
+def _scaling_row(label, triangles, build, trace, rays, first, embree_rate, reused) -> dict:
+    rate = rates(rays, trace)
+    build_s = summary(build)
+    return {"mesh": label, "triangles": triangles, "build_repeats": build,
+            "build_seconds": build_s,
+            "ns_per_n_log2_n": ns_per_n_log2_n(build_s["median"], triangles),
+            "trace_repeats": trace, "trace_seconds": summary(trace), "mrays_per_s": rate,
+            "first_call_seconds": first, "embree_mrays_per_s": embree_rate,
+            "ratio_to_embree": rate["median"] / embree_rate,
+            "from_main_run": reused}
+
+
+if __name__ == "__main__":
+    main()
