@@ -1,8 +1,8 @@
 """The ``jrt`` command line: ``jrt trace``, ``jrt render`` and the study's commands.
 
 ``jrt bench`` hands its options to the benchmark suite (``benchmarks/suite.py``, also
-``python -m benchmarks``); the suite is imported only when the command runs, so the other
-commands do not pay for it.
+``python -m benchmarks``), ``jrt report`` to the report generator (``reports/report.py``);
+they are imported only when their command runs, so the other commands do not pay for them.
 """
 
 from __future__ import annotations
@@ -187,6 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
 DELEGATED = (
     ("bench", "benchmarks.suite",
      "the benchmark suite: every structure on the camel beside Embree, JSON results"),
+    ("report", "reports.report",
+     "a comparison report (README.md, index.html, PNG figures) from JSON results"),
 )
 
 
