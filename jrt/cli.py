@@ -187,6 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
 DELEGATED = (
     ("bench", "benchmarks.suite",
      "the benchmark suite: every structure on the camel beside Embree, JSON results"),
+    ("study", "benchmarks.study",
+     "the whole study of the camel: bench, stability, work-precision, renders, report"),
     ("report", "reports.report",
      "a comparison report (README.md, index.html, PNG figures) from JSON results"),
 )

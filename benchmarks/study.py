@@ -1,0 +1,138 @@
+"""``jrt study``: the whole study of the camel in one command.
+
+    jrt study [-o reports/camel] [--quick]
+
+Runs, in this order, each writing its JSON into the output folder:
+
+1. the benchmark suite (``benchmarks/suite.py``): ``bench.json``;
+2. the stability suite (``benchmarks/stability.py``): ``stability.json``;
+3. the work-precision study (``benchmarks/work_precision.py``): ``work_precision.json``;
+4. renders of the built-in scenes (``jrt.whitted``), which the report copies into
+   ``renders/``;
+5. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
+   the figures.
+
+Defaults fit in about 15 minutes on 2 cores; ``--quick`` (small ray sets, the 19k camel
+where a step allows it, small images) in a few minutes, and is what CI runs. A step that
+fails stops the study with its error; the JSON of the steps before it stays in the folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+#: Render sizes (width, height) of the built-in scenes, full and --quick.
+RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
+SCENES = ("camel", "glass-camel", "mirror-camel")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jrt study", description=__doc__.split("\n\n")[0])
+    parser.add_argument("-o", "--output", default="reports/camel",
+                        help="folder for the JSON, the renders and the report "
+                        "(default reports/camel)")
+    parser.add_argument("--quick", action="store_true",
+                        help="small sizes: a smoke test of the whole chain (CI)")
+    parser.add_argument("--skip", default="",
+                        help="comma-separated steps to skip, from bench, stability, "
+                        "work_precision, renders (their JSON, if present, is reused)")
+    return parser
+
+
+STEPS = ("bench", "stability", "work_precision", "renders")
+
+
+def _check_skip(text: str) -> set[str]:
+    skip = {s.strip() for s in text.split(",") if s.strip()}
+    unknown = sorted(skip - set(STEPS))
+    if unknown:
+        raise SystemExit(f"jrt study: error: unknown step(s) {unknown} in --skip; "
+                         f"allowed: {', '.join(STEPS)}")
+    return skip
+
+
+def _render_scenes(quick: bool) -> list[str]:
+    """The built-in scenes as PNGs in a temporary folder, ``PATH:caption`` each: the report
+    copies them into its ``renders/`` folder (which it clears of stale images first)."""
+    import dataclasses
+    import tempfile
+
+    import numpy as np
+    from skimage import io
+
+    from jrt.scene import load_scene
+    from jrt.whitted import prepare, render_scene
+
+    width, height = RENDER_SIZE["quick" if quick else "full"]
+    folder = Path(tempfile.mkdtemp(prefix="jrt-study-renders-"))
+    images = []
+    for name in SCENES:
+        scene = load_scene(name)
+        if quick:  # a shallower tree and fewer wavelengths: the chain, not the picture
+            settings = dataclasses.replace(
+                scene.settings, max_depth=min(3, scene.settings.max_depth),
+                samples=min(4, scene.settings.samples))
+            scene = dataclasses.replace(scene, settings=settings)
+        image, stats = render_scene(prepare(scene), width=width, height=height)
+        path = folder / f"{name}.png"
+        io.imsave(path, np.round(np.clip(image, 0, 1) * 255).astype(np.uint8),
+                  check_contrast=False)
+        print(f"  {name}: {stats.summary()}")
+        images.append(f"{path}:`jrt render --scene {name} --width {width} --height {height}`"
+                      f": {stats.summary()}")
+    return images
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    skip = _check_skip(args.skip)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    quick = ["--quick"] if args.quick else []
+    start = time.perf_counter()
+    jsons = {step: out / f"{step}.json" for step in ("bench", "stability", "work_precision")}
+
+    def step(name, run):
+        if name in skip:
+            print(f"[study] {name}: skipped")
+            return None
+        begun = time.perf_counter()
+        print(f"[study] {name} ...", flush=True)
+        result = run()
+        print(f"[study] {name}: {time.perf_counter() - begun:.0f} s", flush=True)
+        return result
+
+    from benchmarks import stability, suite, work_precision
+
+    step("bench", lambda: suite.main(["-o", str(jsons["bench"])] + quick))
+    step("stability", lambda: _ok(stability.main(["-o", str(jsons["stability"])] + quick)))
+    step("work_precision",
+         lambda: _ok(work_precision.main(["-o", str(jsons["work_precision"])] + quick)))
+    images = step("renders", lambda: _render_scenes(args.quick)) or []
+
+    from reports import report
+
+    present = [str(p) for p in jsons.values() if p.exists()]
+    if not present:
+        raise SystemExit("jrt study: error: no results to report (every step skipped and "
+                         f"no JSON in {out})")
+    report_args = present + ["-o", str(out)]
+    for image in images:
+        report_args += ["--image", image]
+    _ok(report.main(report_args))
+    print(f"[study] done in {time.perf_counter() - start:.0f} s: {out / 'README.md'}, "
+          f"{out / 'index.html'}")
+    return 0
+
+
+def _ok(status) -> None:
+    """A step's main returned a non-zero status: stop the study there."""
+    if isinstance(status, int) and status != 0:
+        raise SystemExit(status)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
