@@ -105,12 +105,8 @@ def main(argv=None) -> int:
         print(f"[study] {name}: {time.perf_counter() - begun:.0f} s", flush=True)
         return result
 
-    from benchmarks import stability, suite, work_precision
-
-    step("bench", lambda: suite.main(["-o", str(jsons["bench"])] + quick))
-    step("stability", lambda: _ok(stability.main(["-o", str(jsons["stability"])] + quick)))
-    step("work_precision",
-         lambda: _ok(work_precision.main(["-o", str(jsons["work_precision"])] + quick)))
+    for name in ("bench", "stability", "work_precision"):
+        step(name, lambda name=name: _ok(_module(name).main(["-o", str(jsons[name])] + quick)))
     images = step("renders", lambda: _render_scenes(args.quick)) or []
 
     from reports import report
@@ -126,6 +122,14 @@ def main(argv=None) -> int:
     print(f"[study] done in {time.perf_counter() - start:.0f} s: {out / 'README.md'}, "
           f"{out / 'index.html'}")
     return 0
+
+
+def _module(step: str):
+    """The module of a step, imported when the step runs."""
+    import importlib
+
+    return importlib.import_module(
+        {"bench": "benchmarks.suite"}.get(step, f"benchmarks.{step}"))
 
 
 def _ok(status) -> None:
