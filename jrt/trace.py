@@ -51,7 +51,28 @@ def _check_rays(origins, directions, tmax):
         tmax = jnp.full((n,), jnp.inf, jnp.float32)
     else:
         tmax = jnp.broadcast_to(jnp.asarray(tmax, jnp.float32), (n,))
+    _check_ray_values(origins, directions, tmax)
     return origins, directions, tmax
+
+
+def _check_ray_values(origins, directions, tmax):
+    """NaN or infinite origins and directions, zero directions and NaN tmax are errors,
+    never silent misses. Checked where the values are known (outside a caller's jit);
+    inside one, such rays trace as misses (``t = inf``), which is documented."""
+    if any(isinstance(a, jax.core.Tracer) for a in (origins, directions, tmax)):
+        return
+    o, d, t = np.asarray(origins), np.asarray(directions), np.asarray(tmax)
+    problems = (("origins", ~np.isfinite(o).all(axis=1), "finite"),
+                ("directions", ~np.isfinite(d).all(axis=1), "finite"),
+                ("directions", ~(np.abs(d) > 0).any(axis=1), "non-zero"),
+                ("tmax", np.isnan(t), "a number (inf for no limit)"))
+    for name, bad, allowed in problems:
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            value = (o if name == "origins" else d if name == "directions" else t)[first]
+            raise ValueError(
+                f"{name} of ray {first} is {np.asarray(value).tolist()} ({int(bad.sum())} "
+                f"such rays of {len(bad)}); allowed: {allowed}")
 
 
 def _check_structure(structure):
