@@ -1,0 +1,234 @@
+"""The numerical-stability suite (``benchmarks/stability.py``, issue 7) at CI sizes.
+
+Every case that should pass runs here, small: the suite's own case functions with small
+parameters, and assertions on their records. What is known not to hold yet is an xfail
+with its reason (NaN/inf rays are not rejected by ``jrt.closest_hit``; nearly coplanar
+stacks of layers make structures disagree with brute force through the tie window).
+Sizes: the 19k-triangle camel where the case allows, the 69k camel for its slivers, a
+few hundred rays per case, two or three structures per test except case 1 (all six).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import accel
+import jrt
+from benchmarks import stability
+from jrt.data import has_camel
+
+KERNELS = tuple(jrt.KERNELS)
+
+needs_camel_19k = pytest.mark.skipif(not has_camel("camel-19k"),
+                                     reason="camel-19k.off not found (set JRT_DATA)")
+needs_camel = pytest.mark.skipif(not has_camel("camel"), reason="camel.off not found "
+                                                                "(set JRT_DATA)")
+
+
+def _by(records, **match):
+    return [r for r in records if all(r.get(k) == v for k, v in match.items())]
+
+
+def test_kernels_run_in_float64_for_the_oracle():
+    assert stability.float64_kernels_ok()
+
+
+def test_oracle_agrees_with_jrt_brute_force_on_clean_rays():
+    """The suite's float64 brute force against jrt's float32 brute force, away from edges."""
+    rng = np.random.default_rng(0)
+    tris = rng.uniform(-1, 1, (200, 3, 3)).astype(np.float32)
+    v = tris.reshape(-1, 3)
+    f = np.arange(len(v)).reshape(-1, 3)
+    o = rng.uniform(-2, 2, (300, 3)).astype(np.float32)
+    d = tris[rng.integers(0, 200, 300)].mean(axis=1) - o  # aimed at centroids: all hit
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    t64, _ = stability.oracle(tris, o, d)
+    hits = stability.trace(accel.build("brute", v, f), o, d, "watertight")
+    cmp = stability.compare(hits, t64, 1e-4, geometry=(tris, o, d))
+    assert cmp["crack"].sum() == 0 and cmp["false"].sum() == 0
+    assert np.isfinite(t64).sum() == 300
+
+
+# --- Case 1 -----------------------------------------------------------------------------------
+
+@needs_camel_19k
+def test_case1_watertight_has_no_cracks_under_any_structure():
+    pairs = [("watertight", s) for s in accel.NAMES] + [
+        (k, "brute") for k in KERNELS if k != "watertight"]
+    out = stability.case1(mesh="camel-19k", per_family=120, pairs=pairs)
+    records = out["records"]
+    assert len(records) == len(pairs)
+    assert out["parameters"]["rays"] > 400
+    for r in _by(records, kernel="watertight"):
+        assert r["cracks"] == 0, r
+        assert r["false_hits"] == 0, r
+        assert r["parity_errors"] == 0, r
+        assert r["mismatches_vs_brute"] == 0, r
+    for r in records:
+        assert r["nan"] == 0, r
+    # The other two kernels leak through edges and vertices: the test discriminates.
+    assert sum(r["cracks"] for r in records if r["kernel"] != "watertight") > 0
+    assert "watertight: zero cracks" in out["findings"]
+
+
+# --- Case 2 -----------------------------------------------------------------------------------
+
+def test_case2_grazing_rays():
+    pairs = [(k, "brute") for k in KERNELS] + [("watertight", "bvh")]
+    out = stability.case2(per_angle=40, pairs=pairs)
+    for r in out["records"]:
+        assert r["nan"] == 0, r
+        assert r["mismatches_vs_brute"] in (0, None), r
+        for row in r["sweep"]:
+            if row["mesh"] == "axis-aligned" and row["angle"] == "in-plane":
+                # Exactly in the plane: no kernel may hit (the oracle has no hit either).
+                assert row["false_hits"] == row["borderline_hits"] == 0, (r["kernel"], row)
+    for r in _by(out["records"], kernel="watertight"):
+        for row in r["sweep"]:
+            if row["angle"] in ("90-1e-1", "90-1e-2", "90-1e-3"):
+                assert row["cracks"] == 0 and row["false_hits"] == 0, (r["structure"], row)
+
+
+# --- Case 3 -----------------------------------------------------------------------------------
+
+@needs_camel
+def test_case3_slivers_and_degenerate_triangles():
+    pairs = [(k, "brute") for k in KERNELS] + [("watertight", "bvh")]
+    out = stability.case3(mesh="camel", per_triangle=2, incoherent_rays=0, libigl_sample=0,
+                          pairs=pairs)
+    assert out["parameters"]["slivers"] == 273
+    slivers = _by(out["records"], ray_set="slivers")
+    for r in _by(slivers, kernel="watertight"):
+        assert r["cracks"] == 0 and r["false_hits"] == 0, r
+    # The libigl-like fixed threshold passes through the slivers: the baseline fails here.
+    assert _by(slivers, kernel="libigl_like_f64")[0]["cracks_on_slivers"] > 0
+    for r in out["records"]:
+        assert r["nan"] == 0, r
+    for row in out["synthetic"]:
+        for kernel, cell in row.items():
+            if not isinstance(cell, dict):
+                continue
+            assert cell["nan"] == 0, (row["family"], kernel)
+            if row["family"].startswith("zero-area"):
+                assert cell["hits"] == 0, (row["family"], kernel)
+            if row["family"].startswith("tiny") and kernel != "libigl_like":
+                assert cell["misses"] == 0, (row["family"], kernel)
+
+
+# --- Cases 4 and 5 ----------------------------------------------------------------------------
+
+@needs_camel_19k
+def test_case4_offsets_prevent_self_intersection():
+    pairs = [("watertight", "bvh"), ("moller_trumbore", "brute")]
+    out = stability.case4(mesh="camel-19k", rays=256, pairs=pairs)
+    for r in out["records"]:
+        assert r["hits"] > 50
+        assert r["nan"] == 0
+        assert r["self_hits"]["pbrt"] == 0, r["self_hits"]
+        assert r["totals"]["pbrt"]["wrong"] == 0, r["totals"]
+    # Without an offset Möller–Trumbore re-hits its own triangle: the test discriminates.
+    assert _by(out["records"], kernel="moller_trumbore")[0]["self_hits"]["none"] > 0
+
+
+@needs_camel_19k
+def test_case5_pbrt_offset_has_no_self_hits_across_scale_and_offset():
+    out = stability.case5(mesh="camel-19k", rays=128, scales=(1e-6, 1e-3, 1e3, 1e6),
+                          shifts=(1.0, 1e3, 1e5, 1e7), pairs=[("watertight", "brute")],
+                          random_triangles=200, directions=8)
+    (r,) = out["records"]
+    assert r["self_hits"]["pbrt"] == 0, r["self_hits"]
+    assert r["nan"] == 0
+    assert len(r["sweep"]) == 8
+    # A fixed epsilon fails somewhere in the sweep (at scale 1e6 at least).
+    assert r["self_hits"]["fixed"] > 0
+    rand = out["random_triangles"]
+    assert rand["triangles"] >= 190
+    # The renderer's kernel: pbrt's offset bounds the error of the point, and watertight
+    # requires t above its own error bound, so no re-hit (pbrt-v4's reintersect test).
+    assert rand["table"]["pbrt"]["watertight"]["self_hits"] == 0
+    assert all(cell["nan"] == 0 for cell in rand["table"]["pbrt"].values())
+
+
+# --- Case 6 -----------------------------------------------------------------------------------
+
+def test_case6_axis_parallel_rays_on_planes():
+    pairs = [(k, "brute") for k in KERNELS] + [("watertight", s)
+                                                for s in ("kdtree", "octree", "grid")]
+    out = stability.case6(rays=600, pairs=pairs)
+    for r in out["records"]:
+        assert r["nan"] == 0, r
+        assert r["mismatches_vs_brute"] == 0, r
+        if r["kernel"] == "watertight":
+            assert r["cracks"] == 0 and r["false_hits"] == 0, r
+    assert all(r["own_plane_values"] > 0 for r in out["records"] if r["structure"] != "brute")
+
+
+# --- Case 7 -----------------------------------------------------------------------------------
+
+def test_case7_interface_optics():
+    checks = stability.optics_checks()
+    bad = [c for c in checks if not c["ok"]]
+    assert not bad, bad
+    tir = [c for c in checks if c["check"].startswith("TIR")]
+    assert len(tir) == 12 and all(not c["tir_below"] and c["tir_above"] for c in tir)
+
+
+@needs_camel_19k
+def test_case7_glass_camel_traps_light_without_leaks():
+    g = stability.glass_trapping("camel-19k", "watertight", "bvh", rays=8, cap=60)
+    assert g["rays"] == 8
+    assert g["leaks"] == 0 and g["wrong_side"] == 0 and g["nan"] == 0, g
+    assert g["bounces_max"] >= 3 and g["tir_share"] > 0
+
+
+# --- Case 8 -----------------------------------------------------------------------------------
+
+def test_case8_boundaries_reject_bad_inputs():
+    checks = stability.boundary_checks()
+    bad = [c for c in checks if c["ok"] is False]
+    assert not bad, bad
+    mesh = [c for c in checks if c["check"] == "mesh vertices"]
+    assert len(mesh) == 4 and all("MeshError" in c["outcome"] for c in mesh)
+
+
+@needs_camel_19k
+def test_case8_nan_rays_never_hit_or_produce_nan():
+    out = stability.nan_ray_outcomes("camel-19k", [("watertight", "brute"),
+                                                   ("watertight", "bvh")])
+    for r in out:
+        assert r["nan"] == 0 and r["hits"] == 0, r
+
+
+@needs_camel_19k
+def test_case8_closest_hit_rejects_nan_rays():
+    """NaN/inf rays are refused at the boundary, by closest_hit and occluded alike."""
+    m = stability.load("camel-19k")
+    s = stability.build("brute", m.vertices, m.faces, key="camel-19k")
+    o, d, _ = stability.bad_rays()
+    with pytest.raises(ValueError, match="of ray"):
+        jrt.closest_hit(s, o, d)
+    with pytest.raises(ValueError, match="of ray"):
+        jrt.occluded(s, o, d, np.full(len(o), np.inf, np.float32))
+
+
+# --- Case 9 -----------------------------------------------------------------------------------
+
+def test_case9_stack_overflow_is_reported():
+    """A 54-deep BVH: an 8-entry stack overflows (StackOverflowError, in a subprocess so
+    that a spinning traversal cannot hang the tests), the default 64 answers."""
+    res = stability.stack_probe("chain", "bvh", (8, 64), rays=4, lanes=16, timeout=240,
+                                status=False)
+    assert "error" not in res, res
+    assert res["depth"] > 8
+    assert res["sizes"]["8"]["outcome"] == "StackOverflowError"
+    assert res["sizes"]["64"]["outcome"] == "ok"
+
+
+@pytest.mark.xfail(reason="the tie window (2^-20 t, lowest face wins) is not transitive: on "
+                          "a stack of nearly coplanar layers the winner depends on the "
+                          "visiting order, and the structures disagree with brute force "
+                          "(benchmarks/stability.py, case 9)", strict=False)
+def test_case9_stacked_layers_agree_with_brute_force():
+    out = stability.stacked_layers([("watertight", "brute"), ("watertight", "bvh")], n=1000)
+    assert all(r["same_as_brute"] for r in out), out
