@@ -23,7 +23,8 @@ def build(name: str, vertices: np.ndarray, faces: np.ndarray, **params) -> Struc
 
     Args:
         name: one of :data:`NAMES`.
-        vertices: float [V, 3] positions (stored as float32).
+        vertices: float [V, 3] positions (stored as float32), all finite (a NaN or
+            infinite coordinate is a ValueError naming the vertex).
         faces: int [F, 3] vertex indices.
         **params: the builder's own parameters.
     """
@@ -35,6 +36,11 @@ def build(name: str, vertices: np.ndarray, faces: np.ndarray, **params) -> Struc
         raise ValueError(f"vertices must have shape [V, 3], got {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces must have shape [F, 3], got {faces.shape}")
+    bad = ~np.isfinite(vertices).all(axis=1) if vertices.size else np.zeros(0, bool)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"vertex {first} is {vertices[first].tolist()} ({int(bad.sum())} "
+                         "non-finite vertices); allowed: finite coordinates")
     return importlib.import_module(f"accel.{name}").build(vertices, faces, **params)
 
 

@@ -186,8 +186,6 @@ def build(vertices: np.ndarray, faces: np.ndarray, *,
     keep = ~degenerate_mask(vertices, faces)
     ids = np.flatnonzero(keep).astype(np.int32)
     tris = triangle_vertices(vertices, np.asarray(faces)[ids])
-    if not np.isfinite(tris).all():
-        raise ValueError("octree: the faces' vertices must be finite")
     t_count = ids.shape[0]
     depth_limit = default_max_depth(t_count) if max_depth is None else int(max_depth)
     t64 = tris.astype(np.float64)

@@ -472,3 +472,12 @@ def test_unknown_builder_raises():
     vertices, faces = stacked(1)
     with pytest.raises(ValueError, match="quadtree"):
         accel.build("quadtree", vertices, faces)
+
+
+@pytest.mark.parametrize("name", accel.NAMES)
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_vertices_are_refused_by_every_builder(name, value):
+    vertices, faces = stacked(2)
+    vertices[4, 1] = value
+    with pytest.raises(ValueError, match="vertex 4 .*allowed: finite"):
+        accel.build(name, vertices, faces)
