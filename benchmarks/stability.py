@@ -374,7 +374,8 @@ def outside_distance(triangles, rows, o, d, t) -> np.ndarray:
 NEAR = 2.0**-12
 
 
-def compare(hits: dict, t_ref, rel_tol: float, abs_tol=0.0, geometry=None) -> dict:
+def compare(hits: dict, t_ref, rel_tol: float, abs_tol=0.0, geometry=None,
+            ref_rows=None) -> dict:
     """Classify each ray against the oracle's first crossing ``t_ref`` (inf: none).
 
     Within ``rel_tol * t_ref + abs_tol`` (plus 64 float32 ulps of the origin's largest
@@ -384,8 +385,10 @@ def compare(hits: dict, t_ref, rel_tol: float, abs_tol=0.0, geometry=None) -> di
     (triangles, origins, directions)``: a false hit whose point lies within
     :data:`BORDER` of the reported triangle is "borderline" instead (a ray grazing an edge
     or a vertex that float32 rounds onto the triangle and float64 just off it), and hits
-    within :data:`NEAR` of the origin are "near_origin". Error: |t - t_ref| in float32
-    ulps of max(t_ref, |origin|), over the agreeing rays.
+    within :data:`NEAR` of the origin are "near_origin", as are (with the oracle's
+    triangles ``ref_rows``) hits of a ray that starts within 2^-16 |origin| of the plane
+    of the triangle it hits (a ray starting on a surface, at a grazing angle). Error:
+    |t - t_ref| in float32 ulps of max(t_ref, |origin|), over the agreeing rays.
     """
     t = np.asarray(hits["t"], np.float64)
     t_ref = np.asarray(t_ref, np.float64)
@@ -396,6 +399,12 @@ def compare(hits: dict, t_ref, rel_tol: float, abs_tol=0.0, geometry=None) -> di
         np.asarray(geometry[1], np.float64)).max(axis=1)
     with np.errstate(invalid="ignore"):
         near = (ref_hit & (t_ref <= NEAR * scale)) | (hit & (t <= NEAR * scale))
+        if geometry is not None and ref_rows is not None:
+            tri = np.asarray(geometry[0], np.float64)[np.maximum(ref_rows, 0)]
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+            cos = np.abs((n * np.asarray(geometry[2], np.float64)).sum(axis=1))
+            near |= ref_hit & (ref_rows >= 0) & (t_ref * cos <= 2.0**-16 * scale)
         tol = rel_tol * np.where(ref_hit, t_ref, 0.0) + abs_tol + 64 * ulp32(scale)
         same = hit & ref_hit & (np.abs(t - t_ref) <= tol)
         miss = ref_hit & ~hit & ~near
@@ -434,6 +443,7 @@ def summary(cmp: dict, mask=None) -> dict:
             "false_hits": int((cmp["false"] & mask).sum()),
             "borderline_hits": int((cmp["borderline"] & mask).sum()),
             "near_origin": int((cmp["near"] & mask).sum()),
+            **({"skipped_touches": int((cmp["touch"] & mask).sum())} if "touch" in cmp else {}),
             "nan": int((cmp["nan"] & mask).sum()),
             "max_error_ulps": _max(cmp["err_ulps"][mask])}
 
@@ -519,24 +529,26 @@ def closed_mesh_rays(mesh, per_family: int, seed: int = 1) -> dict:
     return families
 
 
-def _crossings(t_all, rows, triangles, directions, merge: float):
-    """From each ray's k nearest hits: (triangles at the first crossing, net crossings,
-    truncated: the k-th hit is finite).
-
-    Hits within ``merge`` x t of each other are one point of the surface. Each point counts
-    the sign of the sum of its hits' orientations (+1 leaving through an outward-facing
-    triangle, -1 entering): a crossing through an edge or a vertex counts once, a ray that
-    only touches a fold (two triangles facing opposite ways) counts zero. The net count is
-    +1 from inside a closed, outward-oriented mesh and 0 from outside."""
-    t = np.asarray(t_all, np.float64)
-    finite = np.isfinite(t)
+def _orientations(t_all, rows, triangles, directions) -> np.ndarray:
+    """+1 where a hit leaves through an outward-facing triangle (d . n > 0), -1 where it
+    enters, 0 for no hit: [N, k] for each ray's k nearest hits."""
     tri = np.asarray(triangles, np.float64)[np.maximum(rows, 0)]
     normal = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
     sign = np.sign((normal * np.asarray(directions, np.float64)[:, None, :]).sum(axis=-1))
-    sign = np.where(finite, sign, 0.0)
-    first = np.where(finite[:, 0], t[:, 0], np.inf)
+    return np.where(np.isfinite(t_all), sign, 0.0)
+
+
+def _net(t_all, sign, include, merge: float) -> np.ndarray:
+    """Net crossings among the included hits: hits within ``merge`` x t of each other are
+    one point of the surface, counted by the sign of the sum of their orientations (a
+    crossing through an edge or a vertex counts once, a ray that only touches a fold,
+    two triangles facing opposite ways at one point, counts zero)."""
+    t = np.where(include, t_all, np.inf)
+    order = np.argsort(t, axis=1, kind="stable")
+    t = np.take_along_axis(t, order, axis=1)
+    sign = np.take_along_axis(np.where(include, sign, 0.0), order, axis=1)
+    finite = np.isfinite(t)
     with np.errstate(invalid="ignore"):
-        at_first = finite & (t <= first[:, None] * (1 + TIE))
         new_point = finite[:, 1:] & (t[:, 1:] - t[:, :-1] > merge * t[:, 1:])
     net = np.zeros(len(t))
     group = sign[:, 0].copy()
@@ -544,8 +556,35 @@ def _crossings(t_all, rows, triangles, directions, merge: float):
         closing = new_point[:, j - 1] | ~finite[:, j]
         net += np.where(closing, np.sign(group), 0.0)
         group = np.where(closing, sign[:, j], group + sign[:, j])
-    net += np.sign(group)
-    return at_first.sum(axis=1), net, finite[:, -1]
+    return net + np.sign(group)
+
+
+def _crossings(t_all, rows, triangles, directions, merge: float):
+    """From each ray's k nearest hits: (triangles at the first crossing, net crossings
+    (:func:`_net`, +1 from inside a closed outward-oriented mesh, 0 from outside),
+    truncated: the k-th hit is finite)."""
+    t = np.asarray(t_all, np.float64)
+    finite = np.isfinite(t)
+    sign = _orientations(t, rows, triangles, directions)
+    first = np.where(finite[:, 0], t[:, 0], np.inf)
+    with np.errstate(invalid="ignore"):
+        at_first = finite & (t <= first[:, None] * (1 + TIE))
+    return at_first.sum(axis=1), _net(t, sign, finite, merge), finite[:, -1]
+
+
+def _skipped_touches(cmp, t_traced, t_all64, sign64, merge: float) -> dict:
+    """Split the rays that reach no hit at the oracle's first crossing into cracks (the
+    oracle crossings they skip add up to a net crossing: the ray went through the surface)
+    and skipped touches (they add up to zero: a fold touched at one point, where float64
+    sees an exit and a re-entry a few ulps apart and float32 neither)."""
+    t = np.where(np.isfinite(t_traced), t_traced, np.inf)
+    skipped = np.isfinite(t_all64) & (t_all64 < t[:, None] * (1 - 1e-6))
+    touch = (cmp["miss"] | cmp["pass_through"]) & (_net(t_all64, sign64, skipped, merge) == 0)
+    out = dict(cmp)
+    for key in ("miss", "pass_through", "crack"):
+        out[key] = cmp[key] & ~touch
+    out["touch"] = touch
+    return out
 
 
 def case1(mesh: str = "camel", per_family: int = 10_000, pairs=None, double_hits=True,
@@ -562,7 +601,8 @@ def case1(mesh: str = "camel", per_family: int = 10_000, pairs=None, double_hits
     dist = np.concatenate([families[k][2] for k in names])
     inside = np.concatenate([np.full(len(families[k][0]), families[k][3]) for k in names])
     fam = np.concatenate([np.full(len(families[k][0]), i) for i, k in enumerate(names)])
-    t_ref, _ = oracle(tris, o, d)
+    t64, rows64 = oracle(tris, o, d, k=all_hits_k)
+    t_ref = t64[:, 0]
     # Keep the rays whose first crossing is the target (nothing in front of it), and
     # interior rays that cross the surface (all of them, for a closed mesh).
     with np.errstate(invalid="ignore"):
@@ -570,12 +610,13 @@ def case1(mesh: str = "camel", per_family: int = 10_000, pairs=None, double_hits
     keep = on_target & np.isfinite(t_ref)
     dropped = {k: int((~keep & (fam == i)).sum()) for i, k in enumerate(names)}
     o, d, t_ref, inside, fam = o[keep], d[keep], t_ref[keep], inside[keep], fam[keep]
+    t64, rows64 = t64[keep], rows64[keep]
+    sign64 = _orientations(t64, rows64, tris, d)
     n = len(o)
 
     per_kernel = {}
     oracle_parity = None
     if double_hits:
-        t64, rows64 = oracle(tris, o, d, k=all_hits_k)
         _, net64, trunc64 = _crossings(t64, rows64, tris, d, 2.0**-16)
         # Where even the oracle's count differs from +1 (inside) / 0 (outside), the ray
         # goes through a saddle vertex whose fan faces both ways: the count cannot tell.
@@ -596,6 +637,7 @@ def case1(mesh: str = "camel", per_family: int = 10_000, pairs=None, double_hits
         s = build(kind, m.vertices, m.faces, key=mesh)
         hits = trace(s, o, d, kernel)
         cmp = compare(hits, t_ref, 1e-3, geometry=(tris, o, d))
+        cmp = _skipped_touches(cmp, hits["t"], t64, sign64, 2.0**-16)
         fams = {k: summary(cmp, fam == i) for i, k in enumerate(names)}
         rec = record(1, kernel, kind, **summary(cmp), families=fams, **per_kernel.get(kernel, {}))
         if kind == "brute":
@@ -610,6 +652,10 @@ def case1(mesh: str = "camel", per_family: int = 10_000, pairs=None, double_hits
                            "per_family": per_family, "rays": n, "families": names,
                            "dropped_occluded_or_misclassified": dropped,
                            "same_crossing_tolerance": "1e-3 x t",
+                           "crack": "no hit at the oracle's first crossing, and the oracle "
+                                    "crossings skipped add up to a net crossing (a skipped "
+                                    "touch, an exit and a re-entry at one point of a fold, "
+                                    "is counted apart)",
                            "double_hit": "the first crossing reported by 2+ triangles "
                                          "(within the tie window 2^-20 t), all-hits brute "
                                          "force with the same kernel",
@@ -637,6 +683,10 @@ def _findings1(records, n) -> str:
         worst = [f"{k} {v}" for k, v in fam.items() if v]
         if worst:
             text += f" (worst families: {', '.join(worst)})"
+        touches = max(r.get("skipped_touches", 0) for r in rows)
+        if touches:
+            text += (f"; {touches} skipped touches (an exit and a re-entry at one point of "
+                     f"a fold in float64, neither in float32: not a leak)")
         if "double_hits" in rows[0]:
             r = rows[0]
             text += (f"; double hits {r['double_hits_per_million']}/M, parity errors "
@@ -1549,10 +1599,10 @@ def case6(rays: int = 20_000, pairs=None, seed: int = 7) -> dict:
     brute = build("brute", v, f, key="lattice")
     for kernel, kind in _bar(pairs, "case 6"):
         s, o, d, own = per_kind[kind]  # each structure's own plane values: its own rays
-        t_ref, _ = oracle(tris, o, d)
+        t_ref, tri_ref = oracle(tris, o, d)
         hits = trace(s, o, d, kernel)
         base = trace(brute, o, d, kernel) if kind != "brute" else hits
-        cmp = compare(hits, t_ref, 1e-6, geometry=(tris, o, d))
+        cmp = compare(hits, t_ref, 1e-6, geometry=(tris, o, d), ref_rows=tri_ref)
         axis_parallel = np.zeros(len(o), bool)
         axis_parallel[: len(o) // 2] = True
         records.append(record(6, kernel, kind, **summary(cmp),
@@ -1581,11 +1631,16 @@ def _findings6(records) -> str:
         parts.append(f"{kernel}: mismatches against brute force {_fmt_kinds(mism)}; cracks "
                      f"against the oracle {_fmt_kinds(cracks)}; false hits "
                      f"{_fmt_kinds(false)}; NaN {nan}.")
+    near = max((r["near_origin"] for r in records), default=0)
     return " ".join(parts) + (" A zero direction component gives 1/d = +-inf and, for an "
                               "origin exactly on a slab, 0 x inf = NaN in the box and cell "
                               "tests; the structures treat that axis as unbounded, so a "
                               "mismatch against brute force would show a box or cell test "
-                              "that drops such a ray.")
+                              "that drops such a ray." + (
+                                  f" Up to {near} rays per set start within rounding of a "
+                                  f"triangle's plane (the kd-tree's and the BSP's split "
+                                  f"planes hug the walls a few ulps away): counted as "
+                                  f"near_origin, not as cracks." if near else ""))
 
 
 # ============================================================================================
