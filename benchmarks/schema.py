@@ -27,7 +27,10 @@ with one record per measurement, told apart by ``kind``:
   first_call_seconds, embree_mrays_per_s, ratio_to_embree, from_main_run}],
   build_exponent, trace_exponent;
 - ``cost_model``: structure, c_ts_ns, c_it_ns, residual, points [{set, query, rays,
-  seconds, steps_mean, tests_mean, predicted_seconds}].
+  seconds, steps_mean, tests_mean, predicted_seconds}];
+- ``heatmap``: structure, set (camera), width, height, block, steps [[...]], tests [[...]]:
+  the per-pixel counters of the camera rays, averaged over ``block``² pixel squares
+  (row-major, ``height`` rows of ``width`` cells).
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ def _null(schema: dict) -> dict:
 
 _REF = {name: {"$ref": f"#/$defs/{name}"} for name in (
     "seconds", "rates", "times", "counter", "build", "trace", "peer", "correctness",
-    "scaling", "scaling_row", "cost_model", "cost_point")}
+    "scaling", "scaling_row", "cost_model", "cost_point", "heatmap", "image")}
 
 DEFS = {
     "seconds": _obj({"median": _NONNEG, "min": _NONNEG, "max": _NONNEG, "spread": _NONNEG}),
@@ -126,9 +129,15 @@ DEFS = {
         "c_ts_ns": _NONNEG, "c_it_ns": _NONNEG, "residual": _null(_NONNEG),
         "points": {"type": "array", "items": _REF["cost_point"], "minItems": 1},
         "fit": _STR, "time_basis": _STR}),
+    "image": {"type": "array", "minItems": 1, "items": {
+        "type": "array", "minItems": 1, "items": _NONNEG}},
+    "heatmap": _obj({
+        "kind": {"const": "heatmap"}, "structure": {"enum": STRUCTURES},
+        "set": {"const": "camera"}, "width": _POS_COUNT, "height": _POS_COUNT,
+        "block": _POS_COUNT, "steps": _REF["image"], "tests": _REF["image"]}),
 }
 
-KINDS = ["build", "trace", "peer", "correctness", "scaling", "cost_model"]
+KINDS = ["build", "trace", "peer", "correctness", "scaling", "cost_model", "heatmap"]
 
 SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -259,6 +268,12 @@ def _facts(results: dict):
         if "structure" in rec and rec["structure"] not in structures:
             yield f"{path}.structure", (f"{rec['structure']!r} is not among the run's "
                                         f"structures {sorted(structures)}")
+        if rec["kind"] == "heatmap":
+            for key in ("steps", "tests"):
+                rows = rec[key]
+                if len(rows) != rec["height"] or any(len(r) != rec["width"] for r in rows):
+                    yield f"{path}.{key}", (f"expected {rec['height']} rows of {rec['width']} "
+                                            f"cells (height x width)")
         if rec["kind"] == "build" and len(rec["repeats"]) != params["builds"]:
             yield f"{path}.repeats", (f"expected {params['builds']} builds "
                                       f"(parameters.builds), got {len(rec['repeats'])}")

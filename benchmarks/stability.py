@@ -1,6 +1,6 @@
 """Numerical stability on stiff and extreme cases (issue 7): a suite that tries to break jrt.
 
-    python -m benchmarks.stability [-o stability.json] [--quick] [--cases 1,2,...]
+    python -m benchmarks.stability [-o stability.json] [--quick | --size SIZE] [--cases 1,2,...]
                                    [--structures brute,bvh,...] [--kernels watertight,...]
 
 Nine cases, each run over kernel x structure pairs and checked against a **float64
@@ -2245,6 +2245,32 @@ def _quick_params(case: int, pairs) -> dict:
     return defaults[case]
 
 
+def _standard_params(case: int, pairs) -> dict:
+    """The study's default sizes (``jrt study``): every case over the same pairs as the
+    full sweep, at a fifth to a quarter of its rays, in about five minutes on two cores."""
+    full_pairs = {"pairs": pairs} if pairs else {}
+    defaults = {
+        1: {"per_family": 2000},
+        2: {"per_angle": 500},
+        3: {"per_triangle": 4, "incoherent_rays": 10_000, "libigl_sample": 1000},
+        4: {"rays": 1024},
+        5: {"rays": 512, "scales": (1e-6, 1e-3, 1.0, 1e3, 1e6),
+            "shifts": (1.0, 1e2, 1e4, 1e5, 1e6, 1e7), "random_triangles": 500},
+        6: {"rays": 5000},
+        7: {"rays": 64} if pairs else {"rays": 64, "pairs": [
+            ("watertight", "bvh"), ("moller_trumbore", "bvh"), ("plane_barycentric", "bvh")]},
+        8: {},
+        9: {"sizes": (1, 4, 64), "chain_sizes": (8, 64), "rays": 128},
+    }
+    return {**defaults[case], **full_pairs}
+
+
+#: The sizes of a run: ``quick`` (CI, about two minutes), ``standard`` (the study's
+#: default, about five), ``full`` (every case at its function's defaults, the published
+#: sweep: about half an hour on two cores).
+SIZES = ("quick", "standard", "full")
+
+
 CASE_FUNCTIONS = {1: case1, 2: case2, 3: case3, 4: case4, 5: case5, 6: case6, 7: case7,
                   8: case8, 9: case9}
 CASE_TITLES = {
@@ -2289,14 +2315,20 @@ def _names(text: str | None, allowed, what: str):
 
 
 def run(cases=CASES, quick=False, kernels=None, structures=None, progress=False,
-        output=None) -> dict:
+        output=None, size: str | None = None) -> dict:
     """Run the chosen cases; the JSON-ready result (also written to ``output`` after each
-    case, when given). A case that raises is recorded with its error, and the others run."""
+    case, when given). A case that raises is recorded with its error, and the others run.
+
+    ``size``: one of :data:`SIZES` (default ``full``, or ``quick`` when ``quick``)."""
+    size = size or ("quick" if quick else "full")
+    if size not in SIZES:
+        raise ValueError(f"size {size!r}: allowed {', '.join(SIZES)}")
+    quick = size == "quick"
     _PROGRESS["on"] = progress
     pairs = None
     if kernels or structures:
         pairs = combos(kernels or KERNEL_NAMES, structures or STRUCTURES)
-    result = {"suite": "jrt numerical stability (issue 7)", "quick": quick,
+    result = {"suite": "jrt numerical stability (issue 7)", "quick": quick, "size": size,
               "environment": {"python": platform.python_version(), "jax": jax.__version__,
                               "numpy": np.__version__, "machine": platform.machine(),
                               "cpu_count": os.cpu_count(), "devices": len(jax.devices()),
@@ -2306,8 +2338,9 @@ def run(cases=CASES, quick=False, kernels=None, structures=None, progress=False,
               "cases": {}}
     total = time.perf_counter()
     for case in tqdm(cases, desc="stability cases", disable=not progress, dynamic_ncols=True):
-        params = _quick_params(case, pairs) if quick else ({"pairs": pairs} if pairs else {})
-        if case == 7 and not quick and pairs is None:
+        params = (_quick_params(case, pairs) if quick else _standard_params(case, pairs)
+                  if size == "standard" else ({"pairs": pairs} if pairs else {}))
+        if case == 7 and size == "full" and pairs is None:
             params = {"pairs": [("watertight", "bvh"), ("moller_trumbore", "bvh"),
                                 ("plane_barycentric", "bvh")]}
         start = time.perf_counter()
@@ -2344,7 +2377,12 @@ def main(argv=None) -> int:
                     "with findings.")
     parser.add_argument("-o", "--output", default="stability.json", help="JSON file to write")
     parser.add_argument("--quick", action="store_true",
-                        help="small sizes (about two minutes on two cores)")
+                        help="small sizes (about two minutes on two cores); same as "
+                             "--size quick")
+    parser.add_argument("--size", choices=SIZES, default=None,
+                        help="quick (about 2 minutes on two cores), standard (about 5: "
+                             "jrt study's default) or full (every case at full size, about "
+                             "30; the default)")
     parser.add_argument("--cases", default=None,
                         help=f"comma-separated case numbers (default: all, {CASES[0]}-"
                              f"{CASES[-1]})")
@@ -2368,8 +2406,10 @@ def main(argv=None) -> int:
             parser.error(f"--cases: unknown {bad or '(empty)'}; allowed {list(CASES)}")
     kernels = _names(args.kernels, KERNEL_NAMES, "kernels")
     structures = _names(args.structures, STRUCTURES, "structures")
+    if args.quick and args.size not in (None, "quick"):
+        parser.error(f"--quick and --size {args.size} disagree: give one of them")
     result = run(cases, args.quick, kernels, structures, progress=not args.no_progress,
-                 output=args.output)
+                 output=args.output, size=args.size)
     out = _write(result, args.output)
     for case, body in result["cases"].items():
         print(f"case {case}: {body['title']} ({body['seconds']} s)\n  {body['findings']}")

@@ -1,6 +1,6 @@
 """``jrt study``: the whole study of the camel in one command.
 
-    jrt study [-o reports/camel] [--quick]
+    jrt study [-o reports/camel] [--quick | --full] [--skip STEPS]
 
 Runs, in this order, each writing its JSON into the output folder:
 
@@ -12,8 +12,10 @@ Runs, in this order, each writing its JSON into the output folder:
 5. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
    the figures.
 
-Defaults fit in about 15 minutes on 2 cores; ``--quick`` (small ray sets, the 19k camel
-where a step allows it, small images) in a few minutes, and is what CI runs. A step that
+Defaults fit in about 15 minutes on 2 cores (the stability suite at its ``standard``
+size); ``--full`` runs the stability suite's full sweep as well (about 45 minutes: what
+``reports/camel/`` is published from); ``--quick`` (small ray sets, the 19k camel where a
+step allows it, small images) in a few minutes, and is what CI runs. A step that
 fails stops the study with its error; the JSON of the steps before it stays in the folder.
 """
 
@@ -34,8 +36,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", default="reports/camel",
                         help="folder for the JSON, the renders and the report "
                         "(default reports/camel)")
-    parser.add_argument("--quick", action="store_true",
-                        help="small sizes: a smoke test of the whole chain (CI)")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true",
+                      help="small sizes: a smoke test of the whole chain (CI)")
+    size.add_argument("--full", action="store_true",
+                      help="the stability suite's full sweep (about 45 minutes in all): "
+                      "the published study")
     parser.add_argument("--skip", default="",
                         help="comma-separated steps to skip, from bench, stability, "
                         "work_precision, renders (their JSON, if present, is reused)")
@@ -105,8 +111,11 @@ def main(argv=None) -> int:
         print(f"[study] {name}: {time.perf_counter() - begun:.0f} s", flush=True)
         return result
 
+    sizes = {"stability": ["--size", "quick" if args.quick else "full" if args.full
+                           else "standard"]}
     for name in ("bench", "stability", "work_precision"):
-        step(name, lambda name=name: _ok(_module(name).main(["-o", str(jsons[name])] + quick)))
+        step(name, lambda name=name: _ok(_module(name).main(
+            ["-o", str(jsons[name])] + sizes.get(name, quick))))
     images = step("renders", lambda: _render_scenes(args.quick)) or []
 
     from reports import report

@@ -582,7 +582,28 @@ class Tracer:
             result = {"occluded": np.asarray(first)}
         else:
             result = {k: np.asarray(v) for k, v in first._asdict().items()}
-        return {"result": result, "times": times, "counters": _counter_summary(counts)}
+        return {"result": result, "times": times, "counters": _counter_summary(counts),
+                "counts": counts}
+
+
+#: Heat maps of the per-ray counters on the camera set have at most this many cells a side.
+HEATMAP_SIDE = 128
+
+
+def heatmap_record(name: str, counts, width: int, height: int,
+                   side: int = HEATMAP_SIDE) -> dict:
+    """Per-pixel cost of the camera rays (traversal steps, triangle tests) as images: the
+    counters of the pixels (raster order, one ray each) averaged over square blocks so
+    that the larger side has at most ``side`` cells."""
+    block = max(1, math.ceil(max(width, height) / side))
+    h, w = height // block, width // block
+    out = {"kind": "heatmap", "structure": name, "set": "camera", "width": w, "height": h,
+           "block": block}
+    for key in ("steps", "tests"):
+        image = np.asarray(getattr(counts, key), np.float64).reshape(height, width)
+        image = image[:h * block, :w * block].reshape(h, block, w, block).mean(axis=(1, 3))
+        out[key] = np.round(image, 3).tolist()
+    return out
 
 
 def first_calls(tasks, quiet: bool, desc: str) -> dict:
@@ -850,6 +871,8 @@ def run(args) -> dict:
                    "counters": m["counters"]}
             records.append(rec)
             traces[name].append(rec)
+            if ray_set.name == "camera":
+                records.append(heatmap_record(name, m["counts"], camera.width, camera.height))
             check = correctness_record(name, ray_set, idx, result, reference, embree_result)
             records.append(check)
             c = rec["counters"]

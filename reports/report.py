@@ -553,6 +553,8 @@ def stability_command(data: dict, path: Path) -> str:
     parts = [STABILITY_COMMAND]
     if data.get("quick"):
         parts.append("--quick")
+    elif data.get("size") == "standard":
+        parts += ["--size", "standard"]
     cases = list(data.get("cases", {}))
     if cases and cases != [str(c) for c in range(1, 10)]:
         parts += ["--cases", ",".join(cases)]
@@ -933,6 +935,69 @@ def section_structures(doc: Doc, b: Bench, out: Path, prefix: str) -> None:
                    f"Memory per structure (bytes of its arrays, MiB). Data: `{b.command}`.")
 
 
+def fig_heatmaps(b: Bench, recs: list[dict], file: Path) -> None:
+    """Per-pixel traversal steps (top row) and triangle tests (bottom row) of the camera
+    rays, one column per structure; one colour scale per row, so columns compare."""
+    import numpy as np
+    from matplotlib.colors import Normalize
+
+    n = len(recs)
+    fig, _ = _new_figure(max(6.0, 2.3 * n + 1.2), 5.4, ncols=1)
+    fig.clf()
+    axes = fig.subplots(2, n, squeeze=False)
+    for row, key, label in ((0, "steps", "traversal steps"), (1, "tests", "triangle tests")):
+        images = [np.asarray(r[key], np.float64) for r in recs]
+        top = max(float(np.percentile(im, 99.5)) for im in images) or 1.0
+        norm = Normalize(0.0, top)
+        for col, (r, im) in enumerate(zip(recs, images, strict=True)):
+            ax = axes[row, col]
+            shown = ax.imshow(im, cmap="inferno", norm=norm, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(f"{r['structure']}", fontsize=9)
+            ax.set_xlabel(f"mean {im.mean():.1f}, max {im.max():.0f}", fontsize=7)
+        fig.colorbar(shown, ax=list(axes[row]), label=label, shrink=0.85, pad=0.02)
+    fig.suptitle("Per-pixel cost of the camera rays" + (f" — {b.path.name}" if b.label else ""),
+                 fontsize=10)
+    _save_plain(fig, file, b.command)
+
+
+def _save_plain(fig, file: Path, command: str) -> None:
+    """Like :func:`_save` for figures whose colour bars tight_layout cannot place."""
+    width, _ = fig.get_size_inches()
+    lines = textwrap.wrap(f"data: {command}", width=max(40, int(width * 15.5)),
+                          break_on_hyphens=False)
+    fig.text(0.01, 0.01, "\n".join(lines), fontsize=7, family="monospace", color="0.3",
+             ha="left", va="bottom")
+    file.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(file, dpi=110, metadata={"Software": None})
+
+
+def section_heatmaps(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
+    order = {name: i for i, name in enumerate(b.structures)}
+    recs = sorted((r for r in b.of("heatmap") if r.get("structure") in order
+                   and r.get("steps") and r.get("tests")),
+                  key=lambda r: order[r["structure"]])
+    if not recs:
+        return False
+    doc.heading(3, "Per-pixel cost" + (f": {b.label}" if b.label else ""))
+    block = recs[0].get("block", 1)
+    doc.para("Where each structure spends its work on the camel: the engine's counters for "
+             "every camera ray (one per pixel), traversal steps and triangle tests, averaged "
+             f"over {block}x{block} pixel blocks. The silhouette, the legs and the thin neck "
+             "are where rays pass close to many boxes or cells without hitting; a structure "
+             "whose map is bright off the camel wastes steps on empty space. "
+             f"Data: `{b.command}`.")
+    f = out / "figures" / f"{prefix}heatmaps.png"
+    fig_heatmaps(b, recs, f)
+    doc.figure(f, f"figures/{f.name}",
+               "Traversal steps (top) and triangle tests (bottom) per camera ray, one column "
+               "per structure, one colour scale per row (clipped at the 99.5th percentile). "
+               f"Data: `{b.command}`.")
+    return True
+
+
 def section_scaling(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
     recs = b.of("scaling")
     if not recs:
@@ -1134,7 +1199,9 @@ def section_stability(doc: Doc, path: Path, data: dict, many: bool) -> None:
     doc.heading(2, "Numerical stability" + (f": `{path.name}`" if many else ""))
     command = stability_command(data, path)
     env = data.get("environment") or {}
-    doc.para(("A quick run (`--quick`, small sizes). " if data.get("quick") else "")
+    doc.para(("A quick run (`--quick`, small sizes). " if data.get("quick") else
+              "The study's standard sizes (`--size standard`, a fifth to a quarter of the "
+              "full sweep's rays). " if data.get("size") == "standard" else "")
              + f"Every case runs over kernel x structure pairs against an oracle: "
              f"{data.get('oracle', 'see the suite')}. "
              + (f"{len(data['cases'])} cases in {_seconds(data.get('seconds'))}"
@@ -1507,6 +1574,7 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
     for i, b in enumerate(inputs.bench, 1):
         prefix = _prefix(b, multi, i)
         section_structures(doc, b, out, prefix)
+        section_heatmaps(doc, b, out, prefix)
         section_scaling(doc, b, out, prefix)
         section_cost_model(doc, b, out, prefix)
     section_work_precision(doc, inputs, out)

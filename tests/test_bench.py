@@ -106,6 +106,23 @@ def test_every_structure_and_set_present(results):
         assert _records(results, "peer", peer=peer), peer
 
 
+def test_heatmaps_average_the_camera_counters(results):
+    """The per-pixel maps hold the same counters as the camera trace's summary: over
+    whole blocks their mean is the mean per ray, their max at most the max."""
+    camera = results["parameters"]["camera"]
+    for name in STRUCTURES:
+        (hm,) = _records(results, "heatmap", structure=name)
+        (trace,) = _records(results, "trace", structure=name, set="camera")
+        assert hm["width"] * hm["block"] == camera["width"]
+        assert hm["height"] * hm["block"] == camera["height"]
+        for key in ("steps", "tests"):
+            cells = np.asarray(hm[key])
+            assert cells.shape == (hm["height"], hm["width"])
+            assert cells.mean() == pytest.approx(trace["counters"][key]["mean"], rel=1e-3)
+            assert cells.max() <= trace["counters"][key]["max"]
+            assert cells.min() >= 0 and cells.max() > 0
+
+
 def test_rates_and_ratios_agree(results):
     embree = {r["set"]: r for r in _records(results, "peer", peer="embree")}
     for r in _records(results, "trace") + _records(results, "peer", status="ok"):

@@ -27,6 +27,7 @@ import trimesh
 from skimage import io
 
 import accel
+import jrt
 from reports import report
 from reports.report import ReportError, generate, num
 
@@ -93,6 +94,11 @@ def bench_results(tmp_path_factory):
                             "mismatches_by_field": {"t": 0, "triangle": 0},
                             "embree_rays": RAYS, "embree_disagreements": 1})
     records.append(suite._absent_peer("open3d", "not installed", "pip install open3d"))
+    camera = suite.fitted_camera(v, 16)
+    o, d = jrt.camera_rays(camera)
+    for name in STRUCTURES:  # the engine's real counters, as the suite records them
+        _, counts = jrt.closest_hit(accel.build(name, v, f), o, d, counters=True)
+        records.append(suite.heatmap_record(name, counts, camera.width, camera.height))
     builds = {r["structure"]: r for r in records if r["kind"] == "build"}
     for name in STRUCTURES:
         cam = traces[name][0]
@@ -226,15 +232,17 @@ def test_report_files_and_figures(full_report):
     text = readme(full_report)
     assert (out / "index.html").is_file()
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
-    # Rates, build, memory, scaling, cost model, two work-precision diagrams, one render.
-    assert len(links) == 8 == len(result["figures"])
+    # Rates, build, memory, heat maps, scaling, cost model, two work-precision diagrams,
+    # one render.
+    assert len(links) == 9 == len(result["figures"])
     for link in links:
         assert not link.startswith(("/", "http")), link
         image = io.imread(out / link)
         assert image.ndim == 3 and image.shape[0] > 10 and image.shape[1] > 10, link
         assert (out / link).read_bytes()[:8] == report.PNG_SIGNATURE
     assert "renders/camel.png" in links
-    for section in ("## Reading", "## The structures side by side", "### Scaling",
+    for section in ("## Reading", "## The structures side by side", "### Per-pixel cost",
+                    "### Scaling",
                     "### Cost model", "## Error against run time", "## Numerical stability",
                     "## Renders", "## Machine and versions"):
         assert section in text, section
@@ -245,11 +253,11 @@ def test_every_figure_names_its_command(full_report, bench_results):
     captions = [c for c in re.findall(r"^\*(.+)\*$", text, flags=re.M)
                 if "Data:" in c or "jrt render" in c]
     figures = [c for c in captions if "Data:" in c]
-    assert len(figures) == 7
+    assert len(figures) == 8
     bench_command = report.bench_command(bench_results[1], bench_results[0])
     assert bench_command.startswith("python -m benchmarks --quick --mesh tiny ")
     assert bench_command.endswith(f"-o {bench_results[0]}")
-    assert sum(bench_command in c for c in figures) == 5
+    assert sum(bench_command in c for c in figures) == 6
     assert any("jrt study --only fresnel" in c for c in figures)
     assert "python -m benchmarks.stability --quick --cases 6,7 -o" in text
 
@@ -458,3 +466,14 @@ def test_jrt_report_is_the_generator(tmp_path, capsys):
         main(["report", str(tmp_path / "absent.json"), "-o", str(tmp_path / "out")])
     assert done.value.code == 2
     assert "absent.json" in capsys.readouterr().err
+
+
+def test_heatmaps_show_each_structure(full_report, bench_results):
+    """One column per structure, its caption under the mean of the recorded cells."""
+    out, _ = full_report
+    text = readme(full_report)
+    assert "figures/heatmaps.png" in text
+    image = io.imread(out / "figures" / "heatmaps.png")
+    assert image.shape[1] > image.shape[0] > 200
+    maps = [r for r in bench_results[1]["records"] if r["kind"] == "heatmap"]
+    assert sorted(r["structure"] for r in maps) == sorted(STRUCTURES)
