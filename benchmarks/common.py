@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import statistics
 import time
 from pathlib import Path
@@ -34,11 +35,24 @@ def jsonable(value):
     return value
 
 
+#: A JSON array of numbers only (no strings, objects or arrays inside), as json.dumps
+#: indents it: one number per line.
+_NUMBER_ARRAY = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
+
+
+def dumps(record: dict) -> str:
+    """Indented JSON, with each array of plain numbers on one line (a heat map row, a list
+    of repeats), so that large records stay readable and diffable."""
+    text = json.dumps(jsonable(record), indent=2, allow_nan=False)
+    return _NUMBER_ARRAY.sub(lambda m: "[" + ", ".join(
+        x.strip() for x in m.group(1).split(",")) + "]", text)
+
+
 def write_record(record: dict, path: str) -> Path:
     """Write ``record`` as indented JSON to ``path`` (folders created) and say where."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(jsonable(record), indent=2, allow_nan=False))
+    out.write_text(dumps(record))
     print(f"-> {out}")
     return out
 

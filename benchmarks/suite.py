@@ -602,7 +602,7 @@ def heatmap_record(name: str, counts, width: int, height: int,
     for key in ("steps", "tests"):
         image = np.asarray(getattr(counts, key), np.float64).reshape(height, width)
         image = image[:h * block, :w * block].reshape(h, block, w, block).mean(axis=(1, 3))
-        out[key] = np.round(image, 3).tolist()
+        out[key] = np.round(image, 1).tolist()
     return out
 
 

@@ -212,3 +212,15 @@ def test_jrt_bench_hands_its_options_to_the_suite(capsys):
         main(["bench", "--structures", "quadtree"])
     assert done.value.code == 2
     assert "quadtree" in capsys.readouterr().err
+
+
+def test_json_writer_keeps_number_arrays_on_one_line(results):
+    """benchmarks.common.dumps: the same JSON as json.dumps, each heat-map row and list of
+    repeats on one line."""
+    from benchmarks.common import dumps
+
+    text = dumps(results)
+    assert json.loads(text) == json.loads(json.dumps(results))
+    (hm,) = _records(results, "heatmap", structure=STRUCTURES[0])
+    assert len(text.splitlines()) < len(json.dumps(results, indent=2).splitlines()) / 4
+    assert json.dumps(hm["steps"][0]) in text  # "[a, b, ...]" on one line
