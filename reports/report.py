@@ -983,12 +983,23 @@ def section_heatmaps(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
         return False
     doc.heading(3, "Per-pixel cost" + (f": {b.label}" if b.label else ""))
     block = recs[0].get("block", 1)
-    doc.para("Where each structure spends its work on the camel: the engine's counters for "
-             "every camera ray (one per pixel), traversal steps and triangle tests, averaged "
-             f"over {block}x{block} pixel blocks. The silhouette, the legs and the thin neck "
-             "are where rays pass close to many boxes or cells without hitting; a structure "
-             "whose map is bright off the camel wastes steps on empty space. "
-             f"Data: `{b.command}`.")
+    doc.para("Where each structure spends its work: the engine's counters for every camera "
+             "ray (one per pixel), traversal steps and triangle tests, averaged over "
+             f"{block}x{block} pixel blocks. Bright cells are rays that visit many nodes or "
+             "cells, or test many triangles; the table gives, per structure, the mean, the "
+             "brightest cell and how much of the work falls on the 10 % most expensive "
+             f"cells. Data: `{b.command}`.")
+    rows = []
+    for r in recs:
+        row = [r["structure"]]
+        for key in ("steps", "tests"):
+            cells = sorted((x for line in r[key] for x in line), reverse=True)
+            total = sum(cells) or 1.0
+            top = cells[:max(1, len(cells) // 10)]
+            row += [num(sum(cells) / len(cells)), num(cells[0]), f"{sum(top) / total:.0%}"]
+        rows.append(row)
+    doc.table(["structure", "steps: mean", "max", "top 10 %", "tests: mean", "max",
+               "top 10 %"], rows)
     f = out / "figures" / f"{prefix}heatmaps.png"
     fig_heatmaps(b, recs, f)
     doc.figure(f, f"figures/{f.name}",

@@ -477,3 +477,8 @@ def test_heatmaps_show_each_structure(full_report, bench_results):
     assert image.shape[1] > image.shape[0] > 200
     maps = [r for r in bench_results[1]["records"] if r["kind"] == "heatmap"]
     assert sorted(r["structure"] for r in maps) == sorted(STRUCTURES)
+    section = text.split("### Per-pixel cost")[1].split("###")[0]
+    for r in maps:
+        cells = np.asarray(r["steps"], np.float64)
+        row = next(line for line in section.splitlines() if line.startswith(f"| {r['structure']} "))
+        assert row.split(" | ")[1:3] == [num(cells.mean()), num(cells.max())], row
