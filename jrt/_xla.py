@@ -5,7 +5,8 @@ triangle-test fusions inside ``lax.scan``/``while_loop`` bodies to code 4-6x slo
 the classic emitter (measured on the camel, jax 0.10.2: Möller–Trumbore brute force at 120
 vs 790 M tests/s on one core). Flags are read when the backend starts, so this only takes
 effect if jrt is imported before the first JAX computation; an explicit setting of the
-same flag in ``XLA_FLAGS`` is left as it is.
+same flag in ``XLA_FLAGS`` is left as it is. jaxlib 0.11 removed the flag (an unknown
+XLA flag aborts the first computation), so it is set only for jaxlib < 0.11.
 
 ``--xla_force_host_platform_device_count=K``: one XLA CPU device per core (K =
 ``os.cpu_count()``, or ``JRT_CPU_DEVICES`` when set). A ``while_loop`` runs on one thread
@@ -16,9 +17,22 @@ Computations that do not shard still run on device 0 as before.
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
+import re
 
-_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
+
+def _jaxlib_before(major: int, minor: int) -> bool:
+    """Whether the installed jaxlib is older than ``major.minor`` (True if unknown)."""
+    try:
+        version = importlib.metadata.version("jaxlib")
+    except importlib.metadata.PackageNotFoundError:
+        return True
+    found = re.match(r"(\d+)\.(\d+)", version)
+    return found is None or (int(found[1]), int(found[2])) < (major, minor)
+
+
+_FLAGS = ("--xla_cpu_use_fusion_emitters=false",) if _jaxlib_before(0, 11) else ()
 
 
 def _device_count() -> int:
