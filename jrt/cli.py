@@ -8,6 +8,7 @@ they are imported only when their command runs, so the other commands do not pay
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -54,6 +55,10 @@ def _cmd_trace(args) -> int:
 
 
 def _cmd_render(args) -> int:
+    if args.scene is None and (args.turntable is not None or args.sweep is not None):
+        option = "--turntable" if args.turntable is not None else "--sweep"
+        raise ValueError(f"{option} applies to --scene renders (the Whitted tree): add "
+                         "--scene NAME|FILE (camel, glass-camel, mirror-camel or a .toml)")
     if args.scene is not None:
         return _render_scene(args)
     if args.depth is not None or args.samples is not None:
@@ -104,7 +109,13 @@ def _render_scene(args) -> int:
         scene = dataclasses.replace(scene, settings=dataclasses.replace(settings, **changes))
     width = args.width or scene.camera.width
     height = args.height or scene.camera.height
+    if args.turntable is not None and args.sweep is not None:
+        raise ValueError("--turntable and --sweep are separate batches: give one of them")
+    if args.sweep is not None:
+        return _render_sweep(args, scene, width, height)
     setup = prepare(scene)
+    if args.turntable is not None:
+        return _render_turntable(args, setup, width, height)
     geometry = setup.geometry
     print(f"{scene.name}: {geometry.mesh.summary()}; {scene.settings.accel} built in "
           f"{setup.structure.stats.get('build_seconds', float('nan')):.2f} s")
@@ -115,6 +126,90 @@ def _render_scene(args) -> int:
     print(f"{scene.settings.accel}/{scene.settings.kernel} {scene.name} {stats.summary()} "
           f"-> {out}")
     return 0
+
+
+#: Frame time of the turntable GIF, milliseconds (GIF counts in hundredths of a second).
+GIF_FRAME_MS = 80
+
+
+def _to_uint8(image) -> np.ndarray:
+    return np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
+
+
+def _render_turntable(args, setup, width: int, height: int) -> int:
+    """``jrt render --scene S --turntable N``: N frames around the camera's target (one
+    batch, jrt.batch), written as DIR/frame_000.png... and the animated DIR/turntable.gif."""
+    import imageio.v3 as iio
+
+    from jrt.batch import batch_to_srgb, render_batch, turntable
+
+    scene = setup.scene
+    frames = args.turntable
+    cameras = turntable(setup, frames, width=width, height=height)
+    radiance, stats = render_batch(setup, cameras=cameras)
+    images = _to_uint8(batch_to_srgb(radiance, setup))
+    folder = Path(args.output or f"{scene.name}-turntable")
+    if folder.suffix.lower() in (".png", ".gif"):
+        raise ValueError(f"-o {folder}: with --turntable, -o names a folder for the frames "
+                         "and the GIF (e.g. -o turntable/)")
+    folder.mkdir(parents=True, exist_ok=True)
+    digits = max(3, len(str(frames - 1)))
+    for i, image in enumerate(images):
+        iio.imwrite(folder / f"frame_{i:0{digits}d}.png", image)
+    gif = folder / "turntable.gif"
+    iio.imwrite(gif, images, duration=GIF_FRAME_MS, loop=0)
+    print(f"{scene.settings.accel}/{scene.settings.kernel} {scene.name} turntable: "
+          f"{stats.summary()} -> {folder}/frame_*.png, {gif}")
+    return 0
+
+
+def _render_sweep(args, scene, width: int, height: int) -> int:
+    """``jrt render --scene S --sweep MATERIAL.FIELD=START:STOP:N``: one batch over the
+    values (jrt.batch), written as a contact sheet, each tile labelled by its value."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jrt.batch import batch_to_srgb, parse_sweep, prepare_sweep, render_batch
+
+    sweep = parse_sweep(args.sweep)
+    setup, scenes = prepare_sweep(scene, sweep)  # checks material and field first
+    radiance, stats = render_batch(setup, scenes=scenes, width=width, height=height)
+    images = batch_to_srgb(radiance, setup)
+    n = len(images)
+    cols = math.ceil(math.sqrt(n))
+    rows = math.ceil(n / cols)
+    tile = max(2.0, width / 100)  # inches: at least 2 so that the labels fit
+    fig, axes = plt.subplots(rows, cols, squeeze=False,
+                             figsize=(cols * tile, rows * tile * height / width + 0.6 * rows))
+    for ax in axes.flat:
+        ax.axis("off")
+    unit = " µm²" if sweep.field == "B" else ""
+    for ax, image, value in zip(axes.flat, images, sweep.values, strict=False):
+        ax.imshow(image, interpolation="nearest")
+        ax.set_title(f"{sweep.label} = {value:.6g}{unit}", fontsize=9)
+    fig.suptitle(f"{scene.name}: {sweep.label} from {sweep.values[0]:g} to "
+                 f"{sweep.values[-1]:g}, {n} values", fontsize=10)
+    fig.tight_layout()
+    out = Path(args.output or f"{scene.name}-sweep.png")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    print(f"{scene.settings.accel}/{scene.settings.kernel} {scene.name} sweep of "
+          f"{sweep.label}: {stats.summary()} -> {out}")
+    return 0
+
+
+def _frames(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(
+            f"N must be an integer >= 1 (the number of frames), got {text!r}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -164,6 +259,15 @@ def build_parser() -> argparse.ArgumentParser:
                         help="--scene: levels of the Whitted tree (default the scene's)")
     render.add_argument("--samples", type=_positive_int, default=None,
                         help="--scene: wavelength samples with dispersion (default the scene's)")
+    render.add_argument("--turntable", type=_frames, default=None, metavar="N",
+                        help="--scene: N frames around the camera's target (360/N degrees "
+                        "about +y) in one batch: -o DIR (default SCENE-turntable) gets "
+                        "frame_000.png... and turntable.gif")
+    render.add_argument("--sweep", default=None, metavar="MATERIAL.FIELD=START:STOP:N",
+                        help="--scene: N linearly spaced values of a material field in one "
+                        "batch (dielectric index, A, B; diffuse albedo; mirror reflectance), "
+                        "e.g. glass.B=0.002:0.02:8; -o PNG (default SCENE-sweep.png) gets a "
+                        "contact sheet")
     mesh_only = "; mesh renders only (a scene has its own)"
     render.add_argument("--vfov", type=float, default=30.0,
                         help=f"vertical field of view, degrees{mesh_only}")
