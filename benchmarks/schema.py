@@ -30,7 +30,11 @@ with one record per measurement, told apart by ``kind``:
   seconds, steps_mean, tests_mean, predicted_seconds}];
 - ``heatmap``: structure, set (camera), width, height, block, steps [[...]], tests [[...]]:
   the per-pixel counters of the camera rays, averaged over ``block``² pixel squares
-  (row-major, ``height`` rows of ``width`` cells).
+  (row-major, ``height`` rows of ``width`` cells);
+- ``turntable``: scene, mesh, frames, width, height, samples, max_depth,
+  batched_images_per_s, loop_images_per_s, loop_same_chunk_images_per_s, ratio (batched
+  over the faster loop), batch_devices, max_abs_difference (batch against the same-chunk
+  loop, radiance), peak_radiance.
 """
 
 from __future__ import annotations
@@ -65,7 +69,7 @@ def _null(schema: dict) -> dict:
 
 _REF = {name: {"$ref": f"#/$defs/{name}"} for name in (
     "seconds", "rates", "times", "counter", "build", "trace", "peer", "correctness",
-    "scaling", "scaling_row", "cost_model", "cost_point", "heatmap", "image")}
+    "scaling", "scaling_row", "cost_model", "cost_point", "heatmap", "image", "turntable")}
 
 DEFS = {
     "seconds": _obj({"median": _NONNEG, "min": _NONNEG, "max": _NONNEG, "spread": _NONNEG}),
@@ -135,9 +139,16 @@ DEFS = {
         "kind": {"const": "heatmap"}, "structure": {"enum": STRUCTURES},
         "set": {"const": "camera"}, "width": _POS_COUNT, "height": _POS_COUNT,
         "block": _POS_COUNT, "steps": _REF["image"], "tests": _REF["image"]}),
+    "turntable": _obj({
+        "kind": {"const": "turntable"}, "scene": _STR, "mesh": _STR, "frames": _POS_COUNT,
+        "width": _POS_COUNT, "height": _POS_COUNT, "samples": _POS_COUNT,
+        "max_depth": _POS_COUNT, "batched_images_per_s": _POS, "loop_images_per_s": _POS,
+        "loop_same_chunk_images_per_s": _POS, "ratio": _POS, "batch_devices": _POS_COUNT,
+        "max_abs_difference": _NONNEG, "peak_radiance": _NONNEG}),
 }
 
-KINDS = ["build", "trace", "peer", "correctness", "scaling", "cost_model", "heatmap"]
+KINDS = ["build", "trace", "peer", "correctness", "scaling", "cost_model", "heatmap",
+         "turntable"]
 
 SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",

@@ -62,6 +62,7 @@ from tqdm.auto import tqdm
 
 import accel
 import jrt  # noqa: F401  (XLA flags before JAX starts its backend)
+import jrt.data
 import jrt.raysets
 from benchmarks.build_scaling import build_times, fit_exponent, ns_per_n_log2_n, subdivide
 from benchmarks.common import jsonable, rates, summary, time_calls, write_record
@@ -72,9 +73,11 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 #: Defaults of a full run and of ``--quick``; any option given on the command line wins.
 DEFAULTS = {
     "full": {"camera_size": 1024, "rays": 2**18, "builds": 5, "repeats": 5, "brute_rays": 4096,
-             "trimesh_rays": 256, "scaling": 4, "scaling_builds": 1, "scaling_repeats": 3},
+             "trimesh_rays": 256, "scaling": 4, "scaling_builds": 1, "scaling_repeats": 3,
+             "turntable_frames": 24},
     "quick": {"camera_size": 64, "rays": 4096, "builds": 2, "repeats": 2, "brute_rays": 4096,
-              "trimesh_rays": 32, "scaling": 2, "scaling_builds": 1, "scaling_repeats": 2},
+              "trimesh_rays": 32, "scaling": 2, "scaling_builds": 1, "scaling_repeats": 2,
+              "turntable_frames": 8},
 }
 #: The ray sets, in the order they are traced, and their query.
 SETS = {"camera": "closest", "shadow": "occluded", "reflected": "closest",
@@ -156,6 +159,11 @@ def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
     parser.add_argument("--scaling-repeats", type=_positive, default=None,
                         help=f"warm timed calls on each scaling mesh "
                              f"({default('scaling_repeats')})")
+    parser.add_argument("--turntable-frames", type=_non_negative, default=None,
+                        help=f"frames of the glass camel's turntable rendered batched "
+                             f"(jrt.batch) and as a loop of single renders, images/s of "
+                             f"both (benchmarks/turntable.py), 0 to skip "
+                             f"({default('turntable_frames')})")
     parser.add_argument("--seed", type=int, default=0, help="incoherent rays' seed")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                         help="progress bars (default on)")
@@ -913,6 +921,18 @@ def run(args) -> dict:
         log(f"cost model {name:<7} C_TS {rec['c_ts_ns']:.2f} ns, C_IT {rec['c_it_ns']:.2f} ns, "
             f"C_0 {rec['c_ray_ns']:.2f} ns, residual {rec['residual']:.1%}")
 
+    # Batched renders: a turntable, batched against a loop of single renders.
+    if p["turntable_frames"] and not jrt.data.has_camel("camel-19k"):
+        notes.append("no turntable: it renders the glass camel on camel-19k, which was not "
+                     "found (see jrt.camel_path)")
+    elif p["turntable_frames"]:
+        rec = turntable_record(args.quick, p["turntable_frames"])
+        records.append(rec)
+        log(f"turntable {rec['frames']} frames {rec['width']}x{rec['height']}: batched "
+            f"{rec['batched_images_per_s']:.2f} images/s, loop "
+            f"{rec['loop_images_per_s']:.2f} (same chunk {rec['loop_same_chunk_images_per_s']:.2f})"
+            f", x{rec['ratio']:.2f}")
+
     results = {
         "schema": "jrt-bench/1", "machine": machine,
         "parameters": {
@@ -929,7 +949,7 @@ def run(args) -> dict:
             "brute_rays": p["brute_rays"], "trimesh_rays": p["trimesh_rays"],
             "scaling_meshes": p["scaling"], "scaling_builds": p["scaling_builds"],
             "scaling_repeats": p["scaling_repeats"], "embree_threads": threads,
-            "seed": args.seed,
+            "seed": args.seed, "turntable_frames": p["turntable_frames"],
             "jax_devices": len(jax.local_devices()),
         },
         "records": records, "notes": notes,
@@ -943,6 +963,26 @@ def run(args) -> dict:
     write_record(results, args.output)
     log(f"suite: {results['wall_seconds']:.0f} s")
     return results
+
+
+def turntable_record(quick: bool, frames: int) -> dict:
+    """images/s of the glass camel's turntable (``benchmarks.turntable``), batched by
+    ``jrt.batch.render_batch`` and as a Python loop of ``jrt.whitted`` renders."""
+    from benchmarks import turntable
+
+    doc = turntable.run(quick=quick, frames=frames)
+    p = doc["parameters"]
+    return {"kind": "turntable", "scene": p["scene"], "mesh": p["mesh"], "frames": p["frames"],
+            "width": p["width"], "height": p["height"], "samples": p["samples"],
+            "max_depth": p["max_depth"],
+            "batched_images_per_s": doc["batched"]["images_per_second"],
+            "loop_images_per_s": doc["loop"]["images_per_second"],
+            "loop_same_chunk_images_per_s": doc["loop_same_chunk"]["images_per_second"],
+            "ratio": doc["ratio"], "batch_devices": doc["batched"]["devices"],
+            "max_abs_difference": doc["max_abs_difference"]["loop_same_chunk"],
+            "peak_radiance": doc["max_abs_difference"]["peak_radiance"],
+            "note": "ratio: batched images/s over the faster loop; loop_same_chunk uses the "
+                    "batch's chunk size (the fairer loop)"}
 
 
 def headline(results: dict) -> str:

@@ -1061,6 +1061,27 @@ def section_cost_model(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
     return True
 
 
+def section_turntable(doc: Doc, b: Bench) -> bool:
+    recs = b.of("turntable")
+    if not recs:
+        return False
+    doc.heading(3, "Batched renders" + (f": {b.label}" if b.label else ""))
+    doc.para("A turntable of the glass camel rendered as one batch (`jrt.batch.render_batch`: "
+             "one `jax.vmap` of the renderer's level function over the cameras) and as a "
+             "Python loop of single renders (`jrt.whitted`), with the library's default "
+             "chunk and with the batch's chunk; the ratio is the batch's images/s over the "
+             "faster loop's. The difference is the largest radiance difference between the "
+             f"batch and the same-chunk loop. Data: `{b.command}`.")
+    doc.table(["frames", "size", "wavelengths", "depth", "batched images/s", "loop",
+               "loop, same chunk", "x faster loop", "max difference"],
+              [[num(r.get("frames")), f"{r.get('width')}x{r.get('height')}",
+                num(r.get("samples")), num(r.get("max_depth")),
+                num(r.get("batched_images_per_s")), num(r.get("loop_images_per_s")),
+                num(r.get("loop_same_chunk_images_per_s")), num(r.get("ratio")),
+                num(r.get("max_abs_difference"))] for r in recs])
+    return True
+
+
 def _wp_points(inputs: Inputs) -> list[dict]:
     """Work–precision records as {study, method, seconds, psnr, ssim, delta_e, command}."""
     points = []
@@ -1492,12 +1513,21 @@ def section_machine(doc: Doc, inputs: Inputs) -> None:
              f"{datetime.datetime.now(datetime.UTC).strftime('%Y-%m-%d %H:%M UTC')}.")
 
 
+def _is_file(text: str) -> bool:
+    """Path(text).is_file(), False where the name cannot be a file (Python 3.11 raises
+    OSError for a name longer than the system allows: a long caption)."""
+    try:
+        return Path(text).is_file()
+    except OSError:
+        return False
+
+
 def parse_image(spec: str) -> tuple[Path, str]:
     """``PATH[:caption]``: the longest existing file before a colon, or the whole spec."""
-    if Path(spec).is_file():
+    if _is_file(spec):
         return Path(spec), ""
     for i, ch in enumerate(spec):
-        if ch == ":" and Path(spec[:i]).is_file():
+        if ch == ":" and _is_file(spec[:i]):
             return Path(spec[:i]), spec[i + 1:].strip()
     raise ReportError(f"--image {spec}: no such image file (expected PATH[:caption], PATH a "
                       f"{', '.join(sorted(IMAGE_TYPES))} file)")
@@ -1588,6 +1618,7 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
         section_heatmaps(doc, b, out, prefix)
         section_scaling(doc, b, out, prefix)
         section_cost_model(doc, b, out, prefix)
+        section_turntable(doc, b)
     section_work_precision(doc, inputs, out)
     for path, data in inputs.stability:
         section_stability(doc, path, data, len(inputs.stability) > 1)

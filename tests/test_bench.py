@@ -23,6 +23,8 @@ import numpy as np
 import pytest
 import trimesh
 
+import jrt
+import jrt.data
 from benchmarks import suite
 from benchmarks.schema import SCHEMA, validate
 
@@ -44,7 +46,9 @@ def tiny_mesh(tmp_path_factory):
 def results(tiny_mesh, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "bench.json"
     argv = ["python -m benchmarks", "--quick", "--mesh", str(tiny_mesh), "--structures",
-            ",".join(STRUCTURES), "--trimesh-rays", "8", "--no-progress", "-o", str(out)]
+            ",".join(STRUCTURES), "--trimesh-rays", "8", "--turntable-frames",
+            "2" if jrt.data.has_camel("camel-19k") else "0",
+            "--no-progress", "-o", str(out)]
     saved = sys.argv
     sys.argv = argv
     try:
@@ -121,6 +125,18 @@ def test_heatmaps_average_the_camera_counters(results):
             assert cells.mean() == pytest.approx(trace["counters"][key]["mean"], rel=1e-3)
             assert cells.max() <= trace["counters"][key]["max"]
             assert cells.min() >= 0 and cells.max() > 0
+
+
+@pytest.mark.skipif(not jrt.data.has_camel("camel-19k"), reason="needs the 19k camel")
+def test_turntable_batched_against_the_loop(results):
+    """The glass camel's turntable: the batch equals the loop of single renders, and the
+    ratio is the batch's rate over the faster loop's."""
+    (rec,) = _records(results, "turntable")
+    assert rec["frames"] == 2 and rec["batch_devices"] == len(jax.local_devices())
+    best = max(rec["loop_images_per_s"], rec["loop_same_chunk_images_per_s"])
+    assert rec["ratio"] == pytest.approx(rec["batched_images_per_s"] / best)
+    assert rec["peak_radiance"] > 0
+    assert rec["max_abs_difference"] <= 1e-6 * rec["peak_radiance"]
 
 
 def test_rates_and_ratios_agree(results):

@@ -94,6 +94,11 @@ def bench_results(tmp_path_factory):
                             "mismatches_by_field": {"t": 0, "triangle": 0},
                             "embree_rays": RAYS, "embree_disagreements": 1})
     records.append(suite._absent_peer("open3d", "not installed", "pip install open3d"))
+    records.append({"kind": "turntable", "scene": "glass-camel", "mesh": "camel-19k",
+                    "frames": 8, "width": 48, "height": 36, "samples": 4, "max_depth": 3,
+                    "batched_images_per_s": 11.5, "loop_images_per_s": 2.7,
+                    "loop_same_chunk_images_per_s": 7.4, "ratio": 11.5 / 7.4,
+                    "batch_devices": 2, "max_abs_difference": 0.0, "peak_radiance": 3.2})
     camera = suite.fitted_camera(v, 16)
     o, d = jrt.camera_rays(camera)
     for name in STRUCTURES:  # the engine's real counters, as the suite records them
@@ -482,3 +487,20 @@ def test_heatmaps_show_each_structure(full_report, bench_results):
         cells = np.asarray(r["steps"], np.float64)
         row = next(line for line in section.splitlines() if line.startswith(f"| {r['structure']} "))
         assert row.split(" | ")[1:3] == [num(cells.mean()), num(cells.max())], row
+
+
+def test_image_with_a_long_caption(render_png):
+    """A caption longer than a file name may be (a render's statistics) is still parsed."""
+    caption = "`jrt render --scene glass-camel`: " + "rays per level [1, 2, 3] " * 20
+    assert report.parse_image(f"{render_png}:{caption}") == (render_png, caption.strip())
+
+
+def test_turntable_table(full_report, bench_results):
+    text = readme(full_report)
+    (rec,) = [r for r in bench_results[1]["records"] if r["kind"] == "turntable"]
+    row = next(line for line in text.split("### Batched renders")[1].splitlines()
+               if line.startswith("| 8 |"))
+    assert row.split(" | ")[4:8] == [num(rec["batched_images_per_s"]),
+                                     num(rec["loop_images_per_s"]),
+                                     num(rec["loop_same_chunk_images_per_s"]),
+                                     num(rec["ratio"])]
