@@ -2225,7 +2225,7 @@ def _findings9(records) -> str:
 def _quick_params(case: int, pairs) -> dict:
     all_engine = [("watertight", s) for s in STRUCTURES]
     defaults = {
-        1: {"mesh": "camel", "per_family": 400,
+        1: {"mesh": "camel-19k", "per_family": 400,
             "pairs": pairs or combos(KERNEL_NAMES, ("brute",)) + all_engine[1:]},
         2: {"per_angle": 200, "pairs": pairs or default_combos(True)},
         3: {"per_triangle": 4, "incoherent_rays": 4000, "libigl_sample": 300,

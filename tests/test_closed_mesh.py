@@ -8,8 +8,9 @@ libigl):
 - the same through edge midpoints;
 - rays from random interior points aimed at random vertices.
 ``watertight`` must have zero cracks under every structure (the `structure` fixture of
-conftest.py: brute force, BVH, kd-tree, octree, BSP tree, grid); the
-crack counts of the other two kernels are printed (they may leak).
+conftest.py: brute force, BVH, kd-tree, octree, BSP tree, grid). The other two kernels
+leak through shared edges by design; the stability suite measures by how much (case 1,
+``tests/test_stability.py``).
 """
 
 from __future__ import annotations
@@ -67,12 +68,10 @@ def crack_rays(camel):
     return families
 
 
-@pytest.mark.parametrize("kernel", list(jrt.KERNELS))
-def test_no_cracks_from_inside(structure, crack_rays, kernel):
+def test_no_cracks_from_inside(structure, crack_rays):
     cracks = {}
     for name, (origins, directions) in crack_rays.items():
-        hits = jrt.closest_hit(structure, origins, directions, kernel=kernel)
+        hits = jrt.closest_hit(structure, origins, directions, kernel="watertight")
         cracks[name] = (int((np.asarray(hits.triangle) < 0).sum()), len(origins))
-    print(f"\n{structure.kind} / {kernel}: cracks (misses / rays): {cracks}")
-    if kernel == "watertight":
-        assert all(missed == 0 for missed, _ in cracks.values()), cracks
+    print(f"\n{structure.kind} / watertight: cracks (misses / rays): {cracks}")
+    assert all(missed == 0 for missed, _ in cracks.values()), cracks
