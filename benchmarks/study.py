@@ -7,8 +7,8 @@ Runs, in this order, each writing its JSON into the output folder:
 1. the benchmark suite (``benchmarks/suite.py``): ``bench.json``;
 2. the stability suite (``benchmarks/stability.py``): ``stability.json``;
 3. the work-precision study (``benchmarks/work_precision.py``): ``work_precision.json``;
-4. renders of the built-in scenes (``jrt.whitted``), which the report copies into
-   ``renders/``;
+4. renders of the built-in scenes and a dispersion close-up of the glass camel
+   (``jrt.whitted``), which the report copies into ``renders/``;
 5. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
    the figures.
 
@@ -28,6 +28,10 @@ from pathlib import Path
 #: Render sizes (width, height) of the built-in scenes, full and --quick.
 RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
 SCENES = ("camel", "glass-camel", "mirror-camel")
+#: The dispersion close-up: the glass camel's own eye, aimed this fraction of the mesh's
+#: height above its centre (the humps), with this vertical field of view (degrees) and
+#: wavelength samples.
+CLOSEUP = {"above_centre": 0.22, "vfov": 11.0, "samples": 16}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,7 +65,8 @@ def _check_skip(text: str) -> set[str]:
 
 
 def _render_scenes(quick: bool) -> list[str]:
-    """The built-in scenes as PNGs in a temporary folder, ``PATH:caption`` each: the report
+    """The built-in scenes and a dispersion close-up of the glass camel (:data:`CLOSEUP`)
+    as PNGs in a temporary folder, ``PATH:caption`` each: the report
     copies them into its ``renders/`` folder (which it clears of stale images first)."""
     import dataclasses
     import tempfile
@@ -69,26 +74,49 @@ def _render_scenes(quick: bool) -> list[str]:
     import numpy as np
     from skimage import io
 
-    from jrt.scene import load_scene
+    from jrt.scene import CameraSpec, load_scene
     from jrt.whitted import prepare, render_scene
 
     width, height = RENDER_SIZE["quick" if quick else "full"]
     folder = Path(tempfile.mkdtemp(prefix="jrt-study-renders-"))
     images = []
-    for name in SCENES:
-        scene = load_scene(name)
-        if quick:  # a shallower tree and fewer wavelengths: the chain, not the picture
-            settings = dataclasses.replace(
-                scene.settings, max_depth=min(3, scene.settings.max_depth),
-                samples=min(4, scene.settings.samples))
-            scene = dataclasses.replace(scene, settings=settings)
-        image, stats = render_scene(prepare(scene), width=width, height=height)
+
+    def shrink(scene):  # --quick: a shallower tree and fewer wavelengths
+        if not quick:
+            return scene
+        return dataclasses.replace(scene, settings=dataclasses.replace(
+            scene.settings, max_depth=min(3, scene.settings.max_depth),
+            samples=min(4, scene.settings.samples)))
+
+    def render(name, scene, command, structure=None):
+        image, stats = render_scene(prepare(scene, structure=structure), width=width,
+                                    height=height)
         path = folder / f"{name}.png"
         io.imsave(path, np.round(np.clip(image, 0, 1) * 255).astype(np.uint8),
                   check_contrast=False)
         print(f"  {name}: {stats.summary()}")
-        images.append(f"{path}:`jrt render --scene {name} --width {width} --height {height}`"
-                      f": {stats.summary()}")
+        images.append(f"{path}:{command}: {stats.summary()}")
+
+    for name in SCENES:
+        render(name, shrink(load_scene(name)),
+               f"`jrt render --scene {name} --width {width} --height {height}`")
+    # The dispersion close-up: the humps of the glass camel, where light leaves the glass
+    # after internal reflections and each wavelength leaves at its own angle.
+    glass = load_scene("glass-camel")
+    setup = prepare(glass)
+    camera = setup.camera(width, height)
+    lo, hi = setup.bounds
+    target = (lo + hi) / 2 + np.array([0.0, CLOSEUP["above_centre"] * (hi - lo)[1], 0.0])
+    closeup = dataclasses.replace(
+        glass, camera=CameraSpec(eye=camera.eye, target=tuple(float(x) for x in target),
+                                 up=camera.up, vfov=CLOSEUP["vfov"], width=width,
+                                 height=height),
+        settings=dataclasses.replace(glass.settings, samples=CLOSEUP["samples"]))
+    render("glass-camel-closeup", shrink(closeup),
+           f"dispersion close-up of `glass-camel` (`benchmarks/study.py`: the scene's eye "
+           f"aimed {CLOSEUP['above_centre']:.0%} of the height above the centre, vertical "
+           f"field of view {CLOSEUP['vfov']:g}°, {CLOSEUP['samples']} wavelengths)",
+           structure=setup.structure)
     return images
 
 

@@ -36,3 +36,46 @@ def test_study_rejects_an_unknown_step(tmp_path):
 def test_study_with_nothing_to_report_says_so(tmp_path):
     with pytest.raises(SystemExit, match="no results"):
         main(["study", "-o", str(tmp_path), "--skip", "bench,stability,work_precision,renders"])
+
+
+def test_quick_study_end_to_end(tmp_path):
+    """``jrt study --quick``, the whole chain as a user runs it (a process of its own, as
+    the command would be): every step's JSON, the renders, the report and its figures,
+    each checked against its own schema or format."""
+    import json
+    import subprocess
+    import sys
+
+    from benchmarks.schema import validate
+    from benchmarks.stability import CASES
+    from reports.report import PNG_SIGNATURE
+
+    out = tmp_path / "camel"
+    run = subprocess.run(
+        [sys.executable, "-c", "import sys; from jrt.cli import main; sys.exit(main())",
+         "study", "--quick", "-o", str(out)],
+        cwd=ROOT, capture_output=True, text=True, timeout=1200)
+    assert run.returncode == 0, run.stderr[-3000:]
+    printed = run.stdout
+    print(printed[-2000:])
+    for step in ("bench", "stability", "work_precision", "renders"):
+        assert f"[study] {step}: " in printed and f"{step}: skipped" not in printed
+    validate(json.loads((out / "bench.json").read_text()))
+    stability = json.loads((out / "stability.json").read_text())
+    assert stability["size"] == "quick"
+    assert sorted(map(int, stability["cases"])) == list(CASES)
+    assert not [c for c, body in stability["cases"].items() if "error" in body]
+    assert json.loads((out / "work_precision.json").read_text())["records"]
+    readme = (out / "README.md").read_text()
+    for section in ("## The structures side by side", "### Per-pixel cost",
+                    "## Error against run time", "## Numerical stability", "## Renders"):
+        assert section in readme, section
+    links = [link.split(")")[0] for link in readme.split("](")[1:]]
+    pngs = [link for link in links if link.endswith(".png")]
+    assert sorted(p for p in pngs if p.startswith("renders/")) == [
+        "renders/camel.png", "renders/glass-camel-closeup.png", "renders/glass-camel.png",
+        "renders/mirror-camel.png"]
+    for link in pngs:
+        assert (out / link).read_bytes()[:8] == PNG_SIGNATURE, link
+    page = (out / "index.html").read_text()
+    assert page.count("data:image/png;base64,") == len(pngs)
