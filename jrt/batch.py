@@ -623,22 +623,8 @@ def _stack_arrays(items: list[SceneArrays]) -> tuple[SceneArrays, SceneArrays]:
 
 
 def _level_of(rays: Rays, parts: list, k: int) -> whitted.Level:
-    """A :class:`jrt.whitted.Level` from one item's chunk outputs (as shade_level builds it:
-    children in their parents' order)."""
-    if not parts:
-        return whitted.Level(np.zeros((0, k), np.float32), np.zeros(0, np.int32),
-                             np.zeros(0, bool), np.zeros(0, np.int32),
-                             np.zeros(0, np.float32), whitted._empty_rays(k),
-                             np.zeros(0, np.int32), 0)
-    out = whitted._ChunkOut(*(np.concatenate(x) if i < 9 else sum(x)
-                              for i, x in enumerate(zip(*parts, strict=True))))
-    parent, slot = np.nonzero(out.child_alive)
-    children = Rays(
-        origins=out.child_origins[parent, slot], directions=out.child_directions[parent, slot],
-        weights=out.child_weights[parent, slot], pixels=rays.pixels[parent],
-        channels=rays.channels[parent], sources=out.triangles[parent].astype(np.int32))
-    return whitted.Level(out.contributions, out.kinds, out.tir, out.triangles, out.t,
-                         children, parent.astype(np.int32), int(out.shadow_rays))
+    """A :class:`jrt.whitted.Level` from one item's chunk outputs, as shade_level builds it."""
+    return whitted.level_from_chunks(parts, rays, k)
 
 
 def _chunk_inputs(rays: list[Rays], start: int, chunk: int, k: int):

@@ -698,21 +698,26 @@ def shade_level(
         args, m = _chunk_args(setup, rays, start, chunk, jax.random.fold_in(key, index))
         out = _executable(args, static, timing)(*args)
         parts.append(_ChunkOut(*(np.asarray(x)[:m] if np.ndim(x) else int(x) for x in out)))
-    k = setup.ray_channels
+    return level_from_chunks(parts, rays, setup.ray_channels)
+
+
+def level_from_chunks(parts: list, rays: Rays, k: int) -> Level:
+    """One level's :class:`Level` from its chunks' outputs (host arrays, padding removed)
+    for the level's ``rays``: the chunks concatenated, the live children gathered
+    parent-major (children stay in their parents' order: coherent chunks next level)."""
     if not parts:
         return Level(np.zeros((0, k), np.float32), np.zeros(0, np.int32), np.zeros(0, bool),
                      np.zeros(0, np.int32), np.zeros(0, np.float32), _empty_rays(k),
                      np.zeros(0, np.int32), 0)
     out = _ChunkOut(*(np.concatenate(x) if i < 9 else sum(x)
                       for i, x in enumerate(zip(*parts, strict=True))))
-    # Parent-major: children stay in their parents' order (coherent chunks).
     parent, slot = np.nonzero(out.child_alive)
     children = Rays(
         origins=out.child_origins[parent, slot], directions=out.child_directions[parent, slot],
         weights=out.child_weights[parent, slot], pixels=rays.pixels[parent],
         channels=rays.channels[parent], sources=out.triangles[parent].astype(np.int32))
     return Level(out.contributions, out.kinds, out.tir, out.triangles, out.t, children,
-                 parent.astype(np.int32), out.shadow_rays)
+                 parent.astype(np.int32), int(out.shadow_rays))
 
 
 def _empty_rays(k: int) -> Rays:
