@@ -452,6 +452,17 @@ def record(case: int, kernel: str, structure: str, **fields) -> dict:
     return {"case": case, "kernel": kernel, "structure": structure, **fields}
 
 
+def with_mismatches_vs_brute(records_and_hits) -> list[dict]:
+    """The records of ``(record, hits)`` pairs, each with ``mismatches_vs_brute``: its hits
+    against brute force's with the same kernel (None where brute force did not run)."""
+    brute = {rec["kernel"]: hits for rec, hits in records_and_hits
+             if rec["structure"] == "brute"}
+    for rec, hits in records_and_hits:
+        base = brute.get(rec["kernel"])
+        rec["mismatches_vs_brute"] = None if base is None else mismatches_vs(hits, base)
+    return [rec for rec, _ in records_and_hits]
+
+
 def mismatches_vs(hits: dict, base: dict) -> int:
     """Rays whose hit differs from ``base`` (same kernel): hit/miss, or t beyond the tie
     window (a different triangle at a tied t is the same answer)."""
@@ -645,7 +656,7 @@ def case1(mesh: str = "camel", per_family: int = 10_000, pairs=None, double_hits
                 "parity_errors_per_million": _per_million(int(parity.sum()), n),
                 "parity_errors_at_a_corner": corner,
                 "parity_unknown": int(truncated.sum())}
-    records, brute_of = [], {}
+    records = []
     for kernel, kind in _bar(pairs, "case 1"):
         s = build(kind, m.vertices, m.faces, key=mesh)
         hits = trace(s, o, d, kernel)
@@ -653,13 +664,8 @@ def case1(mesh: str = "camel", per_family: int = 10_000, pairs=None, double_hits
         cmp = _skipped_touches(cmp, hits["t"], t64, sign64, 2.0**-16)
         fams = {k: summary(cmp, fam == i) for i, k in enumerate(names)}
         rec = record(1, kernel, kind, **summary(cmp), families=fams, **per_kernel.get(kernel, {}))
-        if kind == "brute":
-            brute_of[kernel] = hits
         records.append((rec, hits))
-    for rec, hits in records:
-        base = brute_of.get(rec["kernel"])
-        rec["mismatches_vs_brute"] = None if base is None else mismatches_vs(hits, base)
-    records = [r for r, _ in records]
+    records = with_mismatches_vs_brute(records)
     return {"records": records, "findings": _findings1(records, n),
             "parameters": {"mesh": mesh, "triangles": int(len(m.faces)),
                            "per_family": per_family, "rays": n, "families": names,
@@ -818,7 +824,6 @@ def case2(per_angle: int = 2000, exponents=(1, 2, 3, 4, 5, 6, 7), pairs=None,
     index = {g: i for i, g in enumerate(groups)}
     lab = np.array([index[g] for g in labels])
     records = []
-    brute_of = {}
     for kernel, kind in _bar(pairs, "case 2"):
         s = build(kind, v, f, key="grazing")
         hits = trace(s, o, d, kernel)
@@ -826,13 +831,8 @@ def case2(per_angle: int = 2000, exponents=(1, 2, 3, 4, 5, 6, 7), pairs=None,
         sweep = [{"mesh": g[0], "angle": g[1], **summary(cmp, lab == i)}
                  for i, g in enumerate(groups)]
         rec = record(2, kernel, kind, **summary(cmp), sweep=sweep)
-        if kind == "brute":
-            brute_of[kernel] = hits
         records.append((rec, hits))
-    for rec, hits in records:
-        base = brute_of.get(rec["kernel"])
-        rec["mismatches_vs_brute"] = None if base is None else mismatches_vs(hits, base)
-    records = [r for r, _ in records]
+    records = with_mismatches_vs_brute(records)
     return {"records": records, "findings": _findings2(records),
             "parameters": {"rays": len(o), "per_angle": per_angle,
                            "exponents": list(exponents),
