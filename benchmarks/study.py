@@ -12,10 +12,11 @@ Runs, in this order, each writing its JSON into the output folder:
 5. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
    the figures.
 
-Defaults fit in about 15 minutes on 2 cores (the stability suite at its ``standard``
-size); ``--full`` runs the stability suite's full sweep as well (about 45 minutes: what
-``reports/camel/`` is published from); ``--quick`` (small ray sets, the 19k camel where a
-step allows it, small images) in a few minutes, and is what CI runs. A step that
+Defaults fit in about 15 minutes on 2 cores (the full benchmark suite, the stability
+suite at its ``standard`` size, the work-precision study's quick points); ``--full`` runs
+the stability suite's full sweep and every work-precision point as well (about 45
+minutes: what ``reports/camel/`` is published from); ``--quick`` (small ray sets, the
+19k camel where a step allows it, small images) in a few minutes, and is what CI runs. A step that
 fails stops the study with its error; the JSON of the steps before it stays in the folder.
 """
 
@@ -140,7 +141,8 @@ def main(argv=None) -> int:
         return result
 
     sizes = {"stability": ["--size", "quick" if args.quick else "full" if args.full
-                           else "standard"]}
+                           else "standard"],
+             "work_precision": [] if args.full else ["--quick"]}
     for name in ("bench", "stability", "work_precision"):
         step(name, lambda name=name: _ok(_module(name).main(
             ["-o", str(jsons[name])] + sizes.get(name, quick))))

@@ -1232,8 +1232,9 @@ def section_stability(doc: Doc, path: Path, data: dict, many: bool) -> None:
     command = stability_command(data, path)
     env = data.get("environment") or {}
     doc.para(("A quick run (`--quick`, small sizes). " if data.get("quick") else
-              "The study's standard sizes (`--size standard`, a fifth to a quarter of the "
-              "full sweep's rays). " if data.get("size") == "standard" else "")
+              "The study's standard sizes (`--size standard`, a tenth to a quarter of the "
+              "full sweep's rays; case 5 at three scales and three shifts). "
+              if data.get("size") == "standard" else "")
              + f"Every case runs over kernel x structure pairs against an oracle: "
              f"{data.get('oracle', 'see the suite')}. "
              + (f"{len(data['cases'])} cases in {_seconds(data.get('seconds'))}"

@@ -228,3 +228,20 @@ def test_case9_stack_overflow_is_reported():
 def test_case9_stacked_layers_agree_with_brute_force():
     out = stability.stacked_layers([("watertight", "brute"), ("watertight", "bvh")], n=1000)
     assert all(r["same_as_brute"] for r in out), out
+
+
+def test_every_size_names_only_arguments_of_its_case():
+    """--size quick and standard (jrt study's default) call each case function with
+    arguments it takes, and never with larger sizes than the full sweep's defaults."""
+    import inspect
+
+    for case, fn in stability.CASE_FUNCTIONS.items():
+        signature = inspect.signature(fn)
+        for params in (stability._quick_params(case, None),
+                       stability._standard_params(case, None)):
+            signature.bind(**params)
+            for name in ("per_family", "per_angle", "per_triangle", "incoherent_rays", "rays"):
+                if name in params:
+                    assert params[name] <= signature.parameters[name].default, (case, name)
+    with pytest.raises(ValueError, match="allowed quick, standard, full"):
+        stability.run(cases=(8,), size="medium")
