@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import math
 import re
+import shlex
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -46,6 +48,13 @@ def dumps(record: dict) -> str:
     text = json.dumps(jsonable(record), indent=2, allow_nan=False)
     return _NUMBER_ARRAY.sub(lambda m: "[" + ", ".join(
         x.strip() for x in m.group(1).split(",")) + "]", text)
+
+
+def command_line(prog: str, argv=None) -> str:
+    """The command a script's ``main(argv)`` stands for (``argv`` None: the process's own
+    arguments), quoted as a shell would need it: what a JSON record says made it."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    return " ".join([prog, *map(shlex.quote, argv)]).strip()
 
 
 def write_record(record: dict, path: str) -> Path:

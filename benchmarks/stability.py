@@ -161,9 +161,7 @@ def build_guarded(kind: str, vertices, faces, limit: int = BUILD_MEMORY_LIMIT,
                 "import accel; m = np.load(sys.argv[2]); "
                 "s = accel.build(sys.argv[1], m['vertices'], m['faces']); "
                 "pickle.dump(s, open(sys.argv[3], 'wb'))")
-        root = Path(__file__).resolve().parents[1]
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-            [str(root), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+        root, env = _repo_process()
         start = time.perf_counter()
         try:
             proc = subprocess.run([sys.executable, "-W", "ignore", "-c", code, kind, str(src),
@@ -177,6 +175,15 @@ def build_guarded(kind: str, vertices, faces, limit: int = BUILD_MEMORY_LIMIT,
             return f"{last[0][:200]} (after {elapsed:.1f} s, {limit / 2**30:g} GiB cap)"
         with open(dst, "rb") as fh:
             return pickle.load(fh)
+
+
+def _repo_process() -> tuple[Path, dict]:
+    """The folder and environment for a child Python that imports this checkout's
+    ``accel``, ``jrt`` and ``benchmarks`` (installed or not)."""
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(root), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    return root, env
 
 
 def combos(kernels=KERNEL_NAMES, structures=STRUCTURES) -> list[tuple[str, str]]:
@@ -2114,9 +2121,7 @@ def stack_probe(scene: str, kind: str, sizes, kernel="watertight", rays: int = 6
             "rays": rays, "lanes": lanes, "status": status, "n": n}
     code = ("import json, sys; from benchmarks import stability as s; "
             "print('@@' + json.dumps(s._probe_worker(json.loads(sys.argv[1]))))")
-    root = Path(__file__).resolve().parents[1]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        [str(root), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    root, env = _repo_process()
     start = time.perf_counter()
     try:
         proc = subprocess.run([sys.executable, "-c", code, json.dumps(spec)], cwd=root,

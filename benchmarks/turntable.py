@@ -28,17 +28,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
-import shlex
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 import jrt  # noqa: F401  (jrt sets XLA's flags before JAX starts)
+from benchmarks.common import command_line, write_record
 
 PROG = "python -m benchmarks.turntable"
 SCENE = "glass-camel"
@@ -171,16 +169,13 @@ def run(*, quick=False, frames=None, width=None, height=None, samples=None, dept
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    argv = sys.argv[1:] if argv is None else list(argv)
-    command = " ".join([PROG, *map(shlex.quote, argv)]).strip()
+    command = command_line(PROG, argv)
     start = time.perf_counter()
     doc = run(quick=args.quick, frames=args.frames, width=args.width, height=args.height,
               samples=args.samples, depth=args.depth, mesh=args.mesh, repeats=args.repeats,
               command=command)
     doc["parameters"]["total_seconds"] = time.perf_counter() - start
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    out = write_record(doc, args.output)
     p = doc["parameters"]
     print(f"{p['frames']} frames {p['width']}x{p['height']}, {p['samples']} samples, depth "
           f"{p['max_depth']}, {p['triangles']:,} triangles")

@@ -39,18 +39,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import platform
-import shlex
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 import jrt  # noqa: F401  (jrt sets XLA's flags before JAX starts)
+from benchmarks.common import command_line, write_record
 
 PROG = "python -m benchmarks.work_precision"
 SCENE = "glass-camel"
@@ -275,15 +273,12 @@ def run(*, quick=False, width=None, height=None, mesh="camel-19k", command=PROG,
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    argv = sys.argv[1:] if argv is None else list(argv)
-    command = " ".join([PROG, *map(shlex.quote, argv)]).strip()
+    command = command_line(PROG, argv)
     start = time.perf_counter()
     doc = run(quick=args.quick, width=args.width, height=args.height, mesh=args.mesh,
               command=command, progress=not args.no_progress, chunk=args.chunk)
     doc["parameters"]["total_seconds"] = time.perf_counter() - start
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    out = write_record(doc, args.output)
     ref = doc["reference"]
     print(f"reference: depth {ref['max_depth']}, {ref['samples']} samples, "
           f"{ref['seconds']:.2f} s (compile {ref['compile_seconds']:.2f} s)")

@@ -601,16 +601,18 @@ def _plain_log(*axes) -> None:
                 axis.set_minor_formatter(Plain(labelOnlyBase=False))
 
 
-def _save(fig, file: Path, command: str) -> None:
-    """Name the command under the plot, lay out, write a PNG."""
+def _save(fig, file: Path, command: str, layout: bool = True) -> None:
+    """Name the command under the plot, lay out (not for figures whose colour bars
+    tight_layout cannot place: ``layout=False``), write a PNG."""
     _plain_log(*fig.axes)
     width, height = fig.get_size_inches()
     lines = textwrap.wrap(f"data: {command}", width=max(40, int(width * 15.5)),
                           break_on_hyphens=False)
     fig.text(0.01, 0.01, "\n".join(lines), fontsize=7, family="monospace", color="0.3",
              ha="left", va="bottom")
-    bottom = (0.06 + 0.125 * len(lines)) / height
-    fig.tight_layout(rect=(0, min(bottom, 0.4), 1, 1))
+    if layout:
+        bottom = (0.06 + 0.125 * len(lines)) / height
+        fig.tight_layout(rect=(0, min(bottom, 0.4), 1, 1))
     file.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(file, dpi=110, metadata={"Software": None})
 
@@ -960,18 +962,7 @@ def fig_heatmaps(b: Bench, recs: list[dict], file: Path) -> None:
         fig.colorbar(shown, ax=list(axes[row]), label=label, shrink=0.85, pad=0.02)
     fig.suptitle("Per-pixel cost of the camera rays" + (f" — {b.path.name}" if b.label else ""),
                  fontsize=10)
-    _save_plain(fig, file, b.command)
-
-
-def _save_plain(fig, file: Path, command: str) -> None:
-    """Like :func:`_save` for figures whose colour bars tight_layout cannot place."""
-    width, _ = fig.get_size_inches()
-    lines = textwrap.wrap(f"data: {command}", width=max(40, int(width * 15.5)),
-                          break_on_hyphens=False)
-    fig.text(0.01, 0.01, "\n".join(lines), fontsize=7, family="monospace", color="0.3",
-             ha="left", va="bottom")
-    file.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(file, dpi=110, metadata={"Software": None})
+    _save(fig, file, b.command, layout=False)
 
 
 def section_heatmaps(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
