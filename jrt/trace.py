@@ -61,6 +61,10 @@ def _check_ray_values(origins, directions, tmax):
     inside one, such rays trace as misses (``t = inf``), which is documented."""
     if any(isinstance(a, jax.core.Tracer) for a in (origins, directions, tmax)):
         return
+    # One fused pass on the device first (NumPy's took 53 ms of a 283 ms call on 1M rays);
+    # the rays are copied to the host only to name a bad one.
+    if not bool(_any_bad_ray(origins, directions, tmax)):
+        return
     o, d, t = np.asarray(origins), np.asarray(directions), np.asarray(tmax)
     problems = (("origins", ~np.isfinite(o).all(axis=1), "finite"),
                 ("directions", ~np.isfinite(d).all(axis=1), "finite"),
@@ -73,6 +77,13 @@ def _check_ray_values(origins, directions, tmax):
             raise ValueError(
                 f"{name} of ray {first} is {np.asarray(value).tolist()} ({int(bad.sum())} "
                 f"such rays of {len(bad)}); allowed: {allowed}")
+
+
+@jax.jit
+def _any_bad_ray(origins, directions, tmax):
+    """Whether any ray fails :func:`_check_ray_values` (its checks, in one reduction)."""
+    return (~jnp.isfinite(origins).all() | ~jnp.isfinite(directions).all()
+            | ~(jnp.abs(directions) > 0).any(axis=1).all() | jnp.isnan(tmax).any())
 
 
 def _check_structure(structure):
