@@ -60,7 +60,7 @@ def winner_hits(fn, origins, directions, triangles, triangle_ids, rows) -> Hits:
         tri = jnp.zeros((rows.shape[0], 3, 3), origins.dtype)
         face = jnp.full(rows.shape, -1, jnp.int32)
     else:
-        tri = triangles[safe]
+        tri = triangles.reshape(-1, 9)[safe].reshape(-1, 3, 3)  # rows of 9: a faster gather
         face = triangle_ids[safe]
     t, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
     hit = (rows >= 0) & (t < jnp.inf)
