@@ -38,7 +38,7 @@ brute force's hits bit for bit.
 
 **Devices**: on XLA:CPU a while loop runs on one thread, so the rays are split over the
 host's CPU devices (``jrt`` asks XLA for one per core, see ``jrt._xla``) with
-``shard_map``, each device running its own lanes on its share.
+``shard_map``: ray i goes to device i mod k, and each device packs and runs its own share.
 """
 
 from __future__ import annotations
