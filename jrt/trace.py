@@ -66,11 +66,7 @@ def _check_ray_values(origins, directions, tmax):
     if not bool(_any_bad_ray(origins, directions, tmax)):
         return
     o, d, t = np.asarray(origins), np.asarray(directions), np.asarray(tmax)
-    problems = (("origins", ~np.isfinite(o).all(axis=1), "finite"),
-                ("directions", ~np.isfinite(d).all(axis=1), "finite"),
-                ("directions", ~(np.abs(d) > 0).any(axis=1), "non-zero"),
-                ("tmax", np.isnan(t), "a number (inf for no limit)"))
-    for name, bad, allowed in problems:
+    for name, bad, allowed in _ray_problems(np, o, d, t):
         if bad.any():
             first = int(np.flatnonzero(bad)[0])
             value = (o if name == "origins" else d if name == "directions" else t)[first]
@@ -79,11 +75,19 @@ def _check_ray_values(origins, directions, tmax):
                 f"such rays of {len(bad)}); allowed: {allowed}")
 
 
+def _ray_problems(xp, o, d, t):
+    """The ray checks, (name, bad [n], what is allowed) each, in NumPy or jax.numpy."""
+    return (("origins", ~xp.isfinite(o).all(axis=1), "finite"),
+            ("directions", ~xp.isfinite(d).all(axis=1), "finite"),
+            ("directions", ~(xp.abs(d) > 0).any(axis=1), "non-zero"),
+            ("tmax", xp.isnan(t), "a number (inf for no limit)"))
+
+
 @jax.jit
 def _any_bad_ray(origins, directions, tmax):
-    """Whether any ray fails :func:`_check_ray_values` (its checks, in one reduction)."""
-    return (~jnp.isfinite(origins).all() | ~jnp.isfinite(directions).all()
-            | ~(jnp.abs(directions) > 0).any(axis=1).all() | jnp.isnan(tmax).any())
+    """Whether any ray fails one of :func:`_ray_problems` (one fused pass on the device)."""
+    return jnp.any(jnp.stack([bad.any() for _, bad, _ in
+                              _ray_problems(jnp, origins, directions, tmax)]))
 
 
 def _check_structure(structure):
