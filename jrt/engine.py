@@ -53,7 +53,7 @@ import numpy as np
 from jax import lax
 from jax.sharding import Mesh, PartitionSpec
 
-from jrt.hits import Hits, prefer, tie_window, winner_hits
+from jrt.hits import Hits, gather_triangles, prefer, tie_window, winner_hits
 from jrt.kernels import get_kernel
 
 #: Persistent lanes per device, by backend. CPU: a few thousand keep a lane's state in
@@ -313,9 +313,7 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         testing = (s["ray_id"] < n) & (s["cursor"] < s["end"])
         slot = jnp.where(testing, s["cursor"], 0)
         row = references[slot] if references is not None else slot
-        # Gathered as rows of 9 floats: a [T, 3, 3] gather compiles to a loop nest about
-        # twice as slow (a micro-benchmark on 2048 lanes: 6.5-7.9 against 4.1-4.5 µs).
-        tri = triangles.reshape(-1, 9)[row].reshape(-1, 3, 3)
+        tri = gather_triangles(triangles, row)
         face = triangle_ids[row]
         t = computed_once(jnp.any(testing),
                           lambda o, d, tri: fn(o, d, tri[:, 0], tri[:, 1], tri[:, 2])[0],

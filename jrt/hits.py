@@ -46,6 +46,12 @@ def prefer(t, face, best_t, best_face):
     return (best_face < 0) | (t < best_t - window) | ((t <= best_t + window) & (face < best_face))
 
 
+def gather_triangles(triangles, rows):
+    """``triangles[rows]`` ([n, 3, 3]), gathered as rows of 9 floats: a ``[T, 3, 3]`` gather
+    compiles to a loop nest about twice as slow (2048 lanes: 6.5-7.9 against 4.1-4.5 µs)."""
+    return triangles.reshape(-1, 9)[rows].reshape(-1, 3, 3)
+
+
 def winner_hits(fn, origins, directions, triangles, triangle_ids, rows) -> Hits:
     """The hit record of each ray's winning row (-1: a miss), evaluated in one place.
 
@@ -60,7 +66,7 @@ def winner_hits(fn, origins, directions, triangles, triangle_ids, rows) -> Hits:
         tri = jnp.zeros((rows.shape[0], 3, 3), origins.dtype)
         face = jnp.full(rows.shape, -1, jnp.int32)
     else:
-        tri = triangles.reshape(-1, 9)[safe].reshape(-1, 3, 3)  # rows of 9: a faster gather
+        tri = gather_triangles(triangles, safe)
         face = triangle_ids[safe]
     t, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
     hit = (rows >= 0) & (t < jnp.inf)
