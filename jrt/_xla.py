@@ -13,6 +13,10 @@ XLA flag aborts the first computation), so it is set only for jaxlib < 0.11.
 and XLA's own intra-op threading does not split it, so the traversal engine splits its
 rays over these devices (``shard_map``); a prototype measured 1.7-2x on two cores.
 Computations that do not shard still run on device 0 as before.
+
+``--xla_cpu_prefer_vector_width=512``, on a CPU with AVX-512 only: LLVM then vectorises
+XLA's loops 16 floats wide instead of 8. The BVH traversal ran 5-8 % faster on this
+machine's AMD EPYC (Zen 4; interleaved A/B runs, 300k camel rays a set, 2 devices).
 """
 
 from __future__ import annotations
@@ -35,6 +39,18 @@ def _jaxlib_before(major: int, minor: int) -> bool:
 _FLAGS = ("--xla_cpu_use_fusion_emitters=false",) if _jaxlib_before(0, 11) else ()
 
 
+def _has_avx512(cpuinfo: str | None = None) -> bool:
+    """Whether the CPU has AVX-512F, from ``/proc/cpuinfo``'s flags (False where unknown)."""
+    if cpuinfo is None:
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+                cpuinfo = f.read()
+        except OSError:
+            return False
+    return any(line.startswith("flags") and "avx512f" in line.split()
+               for line in cpuinfo.splitlines())
+
+
 def _device_count() -> int:
     value = os.environ.get("JRT_CPU_DEVICES")
     if value is None:
@@ -51,6 +67,8 @@ def _device_count() -> int:
 def apply() -> None:
     current = os.environ.get("XLA_FLAGS", "")
     flags = (*_FLAGS, f"--xla_force_host_platform_device_count={_device_count()}")
+    if _has_avx512():
+        flags += ("--xla_cpu_prefer_vector_width=512",)
     for flag in flags:
         name = flag.split("=")[0]
         if name not in current:
