@@ -2,7 +2,14 @@
 
 Near child first with a stack (the prototype measured stackless traversal at 2.7x more
 steps and 2x slower). A lane's state is the reference it visits next and the distance at
-which its box was entered; a stack entry is the same pair. One step at an interior node
+which its box was entered. A stack entry is a reference and the smallest entry distance
+of itself and of every entry below it (a prefix minimum, taken when it is pushed): the
+stack is not sorted by distance (a child's pushed sibling may lie beyond an ancestor's),
+but with the prefix minimum a lane that must pop while its closest hit lies before every
+entry left stops at once, instead of popping them one step each. On the camel that cut
+the steps per ray by 8 % (camera rays) and 12 % (incoherent rays) at width 4. A popped
+entry's distance is that lower bound, so a lane may step into a node it could have
+skipped, never skip one it needs. One step at an interior node
 gathers the node's row (the boxes of its ``W`` children), tests every box against
 ``[0, best_t]``, sorts the children it enters by entry distance, goes to the nearest and
 pushes the others, farthest first, in one write (``Traversal.max_push = W - 1``). A
@@ -108,14 +115,18 @@ def make(leaf_bits: int, width: int) -> Traversal:
         go_index = entered - 1 - first_is_leaf.astype(jnp.int32)
         go = go_index >= 0
         pushed = jnp.maximum(go_index, 0)
+        # Entries are pushed farthest first, so each one's prefix minimum is the smaller
+        # of its own distance and the minimum below the old top.
+        top_ref, top_min = top[:, 0], lax.bitcast_convert_type(top[:, 1], jnp.float32)
+        below = jnp.where(has_top, top_min, jnp.inf)
         entry = jnp.stack(
-            [jnp.stack([refs[k], lax.bitcast_convert_type(-keys[k], jnp.int32)], axis=1)
+            [jnp.stack([refs[k], lax.bitcast_convert_type(jnp.minimum(-keys[k], below),
+                                                          jnp.int32)], axis=1)
              for k in range(width - 1)], axis=1)
-        top_ref, top_t = top[:, 0], lax.bitcast_convert_type(top[:, 1], jnp.float32)
         next_ref = jnp.where(go, _pick(go_index, refs), top_ref)
-        next_t = jnp.where(go, -_pick(go_index, keys), top_t)
+        next_t = jnp.where(go, -_pick(go_index, keys), top_min)
         return Step(
             state=(next_ref, next_t), leaf_first=leaf_first, leaf_count=leaf_count,
-            push=pushed, entry=entry, pop=~go, finished=jnp.zeros_like(go))
+            push=pushed, entry=entry, pop=~go, finished=~go & has_top & (top_min > best_t))
 
     return Traversal(start=_start, step=step, stack_width=2, max_push=width - 1)
