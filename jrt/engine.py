@@ -11,6 +11,10 @@ here a fixed set of ``lanes`` (a few thousand) each hold one ray, and every iter
 one ``lax.while_loop`` advances every lane by one triangle test (if its current leaf has
 rows left) and one traversal step (if it has none). A lane whose ray is finished writes
 the hit to the output and takes the next ray, so lanes stay busy until the rays run out.
+The lanes take rays from a queue of those that can hit at all: a ray that misses the box
+of all the triangles (widened as every box test is) is a miss without a step. On the
+camel's camera rays that spared half the rays' root step (steps per ray 3.3 to 2.8 at
+width 4).
 
 **The stack** is [lanes, stack_size + max_push - 1, width] int32 (a structure chooses
 what an entry holds; floats travel as their bit pattern; a step pushes up to its
@@ -154,7 +158,10 @@ class Traversal(NamedTuple):
 
 
 class Counters(NamedTuple):
-    """Per-ray work, int32 [N] each: traversal steps, triangle tests, leaves visited."""
+    """Per-ray work, int32 [N] each: traversal steps, triangle tests, leaves visited.
+
+    A ray that misses the box of all the triangles is answered before any lane takes it
+    and counts no work at all (the engine's queue)."""
 
     steps: jax.Array
     tests: jax.Array
@@ -224,11 +231,27 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
             lane["count"] = jnp.zeros((lanes, 3), jnp.int32)
         return lane
 
+    # The queue: rays that can hit, in order. A ray that misses the box of all the
+    # triangles, or ends before it, cannot hit (the box is widened as every box test is,
+    # BOX_MARGIN), so it is answered here, a miss, without a step; the lanes take only
+    # the others. Camera rays around a mesh mostly miss it (52 % of the camel's).
+    every = _lane_rays(rays, jnp.arange(n, dtype=jnp.int32), n)
+    corners = triangles.reshape(-1, 3)
+    near, far = box_interval(every, tuple(jnp.min(corners, 0)), tuple(jnp.max(corners, 0)))
+    can_hit = (near <= far) & (near <= every.tmax)
+    queue = jnp.nonzero(can_hit, size=n, fill_value=n)[0].astype(jnp.int32)
+    queued = jnp.sum(can_hit.astype(jnp.int32))
+
+    def dequeue(position):
+        """The ray at ``position`` in the queue (``_NO_RAY`` past its end)."""
+        return jnp.where(position < queued, queue[jnp.minimum(position, n - 1)], _NO_RAY)
+
+    first_rays = dequeue(lane_index)
     state = {
         **fresh(),
-        "ray_id": lane_index,
+        "ray_id": first_rays,
         "renewed": jnp.ones(lanes, bool),
-        "trav": traversal.start(arrays, _lane_rays(rays, lane_index, n)),
+        "trav": traversal.start(arrays, _lane_rays(rays, first_rays, n)),
         # max_push - 1 spare slots, so that a push of max_push entries from the top slot
         # stays inside the array (its overflow is flagged, not written out of bounds).
         "stack": jnp.zeros((lanes, stack_size + max_push - 1, width), jnp.int32),
@@ -236,7 +259,8 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         "next_ray": jnp.int32(lanes),
         "overflow": jnp.zeros((), bool),
         "iteration": jnp.int32(0),
-        # The winning row of every ray (-1: none yet or a miss), and lanes' spare slots.
+        # The winning row of every ray (-1: a miss, or not traced: outside the box), and
+        # the lanes' spare slots.
         "out": jnp.full(n + lanes, -1, jnp.int32),
     }
     if counters:
@@ -258,8 +282,7 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         if counters:
             new["out_count"] = s["out_count"].at[target].set(s["count"], unique_indices=True)
         rank = jnp.cumsum(done.astype(jnp.int32)) - 1
-        next_id = jnp.where(done, s["next_ray"] + rank, s["ray_id"])
-        new["ray_id"] = jnp.where(done & (next_id >= n), _NO_RAY, next_id)
+        new["ray_id"] = jnp.where(done, dequeue(s["next_ray"] + rank), s["ray_id"])
         new["next_ray"] = s["next_ray"] + jnp.sum(done.astype(jnp.int32))
         new.update(_select(done, fresh(), {k: s[k] for k in fresh()}))
         new["renewed"] = done

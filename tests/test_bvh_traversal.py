@@ -137,6 +137,48 @@ def check_counters(count: jrt.engine.Counters, hit: np.ndarray, structure):
     return steps, tests, leaves
 
 
+def slab_interval(origins, directions, lo, hi):
+    """Entry and exit distances through the box [lo, hi], in float64 NumPy (Kay-Kajiya)."""
+    o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (lo - o) / d, (hi - o) / d
+    near = np.nanmax(np.minimum(t0, t1), axis=1).clip(min=0.0)
+    far = np.nanmin(np.maximum(t0, t1), axis=1)
+    return near, far
+
+
+def test_rays_outside_the_mesh_box_take_no_step(camel, camel_bvh, camel_rays, brute_hits):
+    """The engine answers rays that miss the mesh's box before the loop: they count no
+    work and miss; every ray through the box is traced (at least the root's step), and
+    the hits stay brute force's. Rays whose tmax ends before the box are not traced."""
+    origins, directions = camel_rays["camera"]
+    want = brute_hits("watertight", "camera")
+    hits, count = jrt.closest_hit(camel_bvh, origins, directions, counters=True)
+    assert_same_hits(as_numpy(hits), want, origins, directions, "queue/camera")
+    steps = np.asarray(count.steps)
+    lo, hi = camel.vertices.min(0), camel.vertices.max(0)
+    near, far = slab_interval(origins, directions, lo, hi)
+    through = near <= far
+    # A camera around the camel: some rays miss its box, many pass through it.
+    assert 0.2 < through.mean() < 0.8
+    assert (steps[through] >= 1).all()
+    # Untraced rays miss the box (the engine's box is widened by 2^-16, so a ray that
+    # grazes the exact box may be traced: the converse need not hold).
+    untraced = steps == 0
+    assert untraced.sum() > 0.2 * len(steps)
+    assert not through[untraced].any()
+    assert not (np.asarray(hits.triangle)[untraced] >= 0).any()
+    assert (np.asarray(count.tests)[untraced] == 0).all()
+
+    # The same rays, ending halfway to the box: nothing is traced, nothing occludes.
+    inside = through & (near > 0)
+    short = np.where(inside, near * 0.5, np.inf).astype(np.float32)
+    mask, occ = jrt.occluded(camel_bvh, origins[inside], directions[inside], short[inside],
+                             counters=True)
+    assert not np.asarray(mask).any()
+    assert (np.asarray(occ.steps) == 0).all()
+
+
 def test_camel_counters(camel_bvh, camel_rays, brute_hits):
     ray_set = "incoherent"  # hits and misses
     origins, directions = camel_rays[ray_set]
