@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
+from jax import lax
 from jaxtyping import Array, Float, Int
 
 
@@ -52,24 +54,46 @@ def gather_triangles(triangles, rows):
     return triangles.reshape(-1, 9)[rows].reshape(-1, 3, 3)
 
 
+#: Rays per chunk of :func:`winner_hits`.
+WINNER_CHUNK = 1024
+
+
 def winner_hits(fn, origins, directions, triangles, triangle_ids, rows) -> Hits:
     """The hit record of each ray's winning row (-1: a miss), evaluated in one place.
 
     XLA fuses the kernel differently inside each traversal loop, and the compiled code
     may round one ulp differently (fused multiply-adds); evaluating t, u, v of the winner
     once, elementwise over all rays, gives every structure (and brute force) the same
-    numbers for the same triangle.
+    numbers for the same triangle. The rays go through in chunks of ``WINNER_CHUNK``
+    (``lax.map``): one fixed-shape computation in every program, wherever a ray sits in
+    the batch. Evaluated over the whole batch at once, the kernel was compiled per program
+    and per batch size, and a change elsewhere in the engine moved u, v of two camel rays
+    in 20k by an ulp (vectorised loop against its scalar remainder).
     """
-    rows = jnp.where(rows >= 0, rows, -1)
-    safe = jnp.maximum(rows, 0)
-    if triangles.shape[0] == 0:
-        tri = jnp.zeros((rows.shape[0], 3, 3), origins.dtype)
-        face = jnp.full(rows.shape, -1, jnp.int32)
-    else:
-        tri = gather_triangles(triangles, safe)
-        face = triangle_ids[safe]
-    t, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
-    hit = (rows >= 0) & (t < jnp.inf)
-    zero = jnp.zeros_like(t)
-    return Hits(t=jnp.where(hit, t, jnp.inf), triangle=jnp.where(hit, face, -1),
-                u=jnp.where(hit, u, zero), v=jnp.where(hit, v, zero))
+    n = rows.shape[0]
+    chunks = max(1, -(-n // WINNER_CHUNK))
+    pad = chunks * WINNER_CHUNK - n
+    rows = jnp.pad(jnp.where(rows >= 0, rows, -1), (0, pad), constant_values=-1)
+    origins = jnp.pad(origins, ((0, pad), (0, 0)))
+    directions = jnp.pad(directions, ((0, pad), (0, 0)), constant_values=1.0)
+    empty = triangles.shape[0] == 0
+
+    def chunk(args):
+        origins, directions, rows = args
+        safe = jnp.maximum(rows, 0)
+        if empty:
+            tri = jnp.zeros((rows.shape[0], 3, 3), origins.dtype)
+            face = jnp.full(rows.shape, -1, jnp.int32)
+        else:
+            tri = gather_triangles(triangles, safe)
+            face = triangle_ids[safe]
+        t, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
+        hit = (rows >= 0) & (t < jnp.inf)
+        zero = jnp.zeros_like(t)
+        return Hits(t=jnp.where(hit, t, jnp.inf), triangle=jnp.where(hit, face, -1),
+                    u=jnp.where(hit, u, zero), v=jnp.where(hit, v, zero))
+
+    shape = (chunks, WINNER_CHUNK)
+    hits = lax.map(chunk, (origins.reshape(shape + (3,)), directions.reshape(shape + (3,)),
+                           rows.reshape(shape)))
+    return jax.tree.map(lambda a: a.reshape(-1)[:n], hits)
