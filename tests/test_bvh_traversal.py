@@ -137,16 +137,6 @@ def check_counters(count: jrt.engine.Counters, hit: np.ndarray, structure):
     return steps, tests, leaves
 
 
-def slab_interval(origins, directions, lo, hi):
-    """Entry and exit distances through the box [lo, hi], in float64 NumPy (Kay-Kajiya)."""
-    o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0, t1 = (lo - o) / d, (hi - o) / d
-    near = np.nanmax(np.minimum(t0, t1), axis=1).clip(min=0.0)
-    far = np.nanmin(np.maximum(t0, t1), axis=1)
-    return near, far
-
-
 def test_rays_outside_the_mesh_box_take_no_step(camel, camel_bvh, camel_rays, brute_hits):
     """The engine answers rays that miss the mesh's box before the loop: they count no
     work and miss; every ray through the box is traced (at least the root's step), and
@@ -373,6 +363,19 @@ SLIVER_BUG = (
     "the box that brute force's hit lies in (see test_sliver_triangle_behind_a_nearer_one)")
 
 
+def slab_interval(origins, directions, lo, hi):
+    """Entry (at least 0) and exit distances of rays through boxes [lo, hi], float64 NumPy
+    Kay-Kajiya slabs without margin, broadcast over the leading axes. An axis whose slab
+    gives NaN (an origin on the face of a slab the ray lies in) puts no bound."""
+    o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (lo - o) / d, (hi - o) / d
+        near, far = np.minimum(t0, t1), np.maximum(t0, t1)
+    near = np.where(np.isnan(near), -np.inf, near)
+    far = np.where(np.isnan(far), np.inf, far)
+    return np.maximum(near.max(axis=-1), 0), far.min(axis=-1)
+
+
 def hits_before_their_box(kernel, triangles, origins, directions, tmax) -> np.ndarray:
     """bool [R]: has the ray a kernel hit (0 < t < tmax) before it enters that triangle's
     own bounding box (float64 slab test, no margin)? The mechanism of SLIVER_BUG."""
@@ -382,12 +385,7 @@ def hits_before_their_box(kernel, triangles, origins, directions, tmax) -> np.nd
     t = np.asarray(jax.jit(jrt.KERNELS[kernel])(o, d, tri[:, 0], tri[:, 1], tri[:, 2])[0])
     t = t.reshape(r, t_count)
     lo, hi = (triangles.min(axis=1).astype(np.float64), triangles.max(axis=1).astype(np.float64))
-    o64, d64 = origins.astype(np.float64)[:, None], directions.astype(np.float64)[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0, t1 = (lo[None] - o64) / d64, (hi[None] - o64) / d64
-        near = np.minimum(t0, t1)
-    near = np.where(np.isnan(near), -np.inf, near)
-    tnear = np.maximum(near.max(axis=-1), 0)
+    tnear, _ = slab_interval(origins[:, None], directions[:, None], lo[None], hi[None])
     return np.any(np.isfinite(t) & (t < tmax[:, None]) & (t < tnear), axis=1)
 
 
