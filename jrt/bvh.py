@@ -10,7 +10,8 @@ entry left stops at once, instead of popping them one step each. On the camel th
 the steps per ray by 8 % (camera rays) and 12 % (incoherent rays) at width 4. A popped
 entry's distance is that lower bound, so a lane may step into a node it could have
 skipped, never skip one it needs. One step at an interior node
-gathers the node's row (the boxes of its ``W`` children), tests every box against
+gathers the node's row (the quantised boxes of its ``W`` children, decoded with a shift,
+a mask and a multiply-add each), tests every box against
 ``[0, best_t]``, sorts the children it enters by entry distance, goes to the nearest and
 pushes the others, farthest first, in one write (``Traversal.max_push = W - 1``). A
 nearest child that is a leaf is handed to the engine's leaf loop at once and the step goes
@@ -28,7 +29,7 @@ import functools
 import jax.numpy as jnp
 from jax import lax
 
-from accel.bvh import EMPTY_SLOT
+from accel.bvh import EMPTY_SLOT, FRAME_WORDS, QUANT_MAX, reference_column
 from jrt.engine import Step, Traversal, box_interval, computed_once
 
 #: Comparators (i, j) of optimal sorting networks by input count (Knuth, TAOCP 5.3.4).
@@ -68,14 +69,26 @@ def make(leaf_bits: int, width: int) -> Traversal:
         code = ~ref
         return code >> leaf_bits, code & count_mask
 
+    first_ref = reference_column(width)
+
     def child_keys(ray, rows, best_t):
         """Per child: the sort key (minus the entry distance, +inf if missed) and ref."""
-        row = rows.T  # one [L] vector per field
+        row = rows.T  # one [L] vector per word
+        origin = [lax.bitcast_convert_type(row[a], jnp.float32) for a in range(3)]
+        scale = [lax.bitcast_convert_type(row[3 + a], jnp.float32) for a in range(3)]
+
+        def bound(field, child):
+            """``origin + q * scale`` of the field's byte (accel.bvh's layout): q * scale is
+            exact, so a fused multiply-add rounds the same as the build's check."""
+            byte = field * width + child
+            q = (row[FRAME_WORDS + byte // 4] >> (8 * (byte % 4))) & QUANT_MAX
+            return origin[field % 3] + q.astype(jnp.float32) * scale[field % 3]
+
         keys, refs = [], []
         for k in range(width):
-            near, far = box_interval(ray, [row[a * width + k] for a in range(3)],
-                                     [row[(3 + a) * width + k] for a in range(3)])
-            ref = lax.bitcast_convert_type(row[6 * width + k], jnp.int32)
+            near, far = box_interval(ray, [bound(a, k) for a in range(3)],
+                                     [bound(3 + a, k) for a in range(3)])
+            ref = row[first_ref + k]
             enter = (near <= far) & (near <= best_t) & (ref != EMPTY_SLOT)
             keys.append(jnp.where(enter, -near, jnp.inf))
             refs.append(ref)

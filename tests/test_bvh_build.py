@@ -8,7 +8,10 @@ docstring) and compared with what the builder reports in ``stats``:
   in exactly one leaf; a node of ``width`` slots has at least two children, and fewer
   than ``width`` only if all are leaves (the greedy collapse of a binary tree), and the
   children count is that of a binary tree collapsed (sum of children - 1 = leaves - 1);
-- every child box is the exact float32 bound of the triangles of its subtree;
+- every child box, decoded from its bytes in its parent's frame (origin + q * scale in
+  float32), contains the exact float32 bound of the triangles of its subtree and lies
+  within one quantisation step of it; the frame is the union of the children's boxes and
+  its scale the smallest power of two covering it in 255 steps;
 - ``triangle_ids`` is a permutation of the non-degenerate faces and ``triangles`` holds
   their corners;
 - the counts, depth, leaf sizes, SAH cost and bytes of ``stats``.
@@ -70,13 +73,23 @@ def decode(structure) -> dict:
     triangles = np.asarray(structure["triangles"])
     leaf_bits = structure.layout_value("leaf_bits")
     width = structure.layout_value("width")
-    row = -(-7 * width // 16) * 16  # 7 floats a child, whole 64-byte lines
-    assert nodes.dtype == np.float32 and nodes.ndim == 2 and nodes.shape[1] == row
+    bound_words = -(-6 * width // 4)  # one byte a bound, six a child
+    ref_col = 6 + bound_words  # after origin (3 words), scale (3) and the bounds
+    row = -(-(ref_col + width) // 16) * 16  # whole 64-byte lines
+    assert nodes.dtype == np.int32 and nodes.ndim == 2 and nodes.shape[1] == row
     assert nodes.shape[0] >= 1
-    np.testing.assert_array_equal(nodes[:, 7 * width:], 0)  # padding
-    refs = np.ascontiguousarray(nodes).view(np.int32)[:, 6 * width:7 * width].astype(np.int64)
-    # Structure of arrays: [lower x, y, z, upper x, y, z] of every child -> [m, W, 2, 3].
-    boxes = nodes[:, :6 * width].reshape(-1, 2, 3, width).transpose(0, 3, 1, 2)
+    np.testing.assert_array_equal(nodes[:, ref_col + width:], 0)  # padding
+    unused = np.ascontiguousarray(nodes[:, 6:ref_col]).view(np.uint8)[:, 6 * width:]
+    np.testing.assert_array_equal(unused, 0)
+    refs = nodes[:, ref_col:ref_col + width].astype(np.int64)
+    origin = np.ascontiguousarray(nodes[:, 0:3]).view(np.float32)
+    scale = np.ascontiguousarray(nodes[:, 3:6]).view(np.float32)
+    # Little-endian bytes, field-major: byte f * W + c is field f of child c.
+    q = np.ascontiguousarray(nodes[:, 6:ref_col]).view("<u1")[:, :6 * width]
+    q = q.reshape(-1, 6, width).transpose(0, 2, 1).reshape(-1, width, 2, 3)  # [m, W, 2, 3]
+    # The documented decode, origin + q * scale in float32 (q * scale exact).
+    boxes = (origin[:, None, None, :] + q.astype(np.float32) * scale[:, None, None, :]
+             ).astype(np.float32)
     m, t_count = nodes.shape[0], triangles.shape[0]
 
     # Interior references: every row but the root referenced exactly once, by an earlier
@@ -124,7 +137,8 @@ def decode(structure) -> dict:
         lo[p, ps] = lo[rows].min(axis=1)
         hi[p, ps] = hi[rows].max(axis=1)
         below[p, ps] = below[rows].sum(axis=1)
-    return {"refs": refs, "is_node": is_node, "boxes": boxes, "width": width,
+    return {"refs": refs, "is_node": is_node, "boxes": boxes, "width": width, "q": q,
+            "origin": origin, "scale": scale,
             "lo": lo, "hi": hi, "below": below, "parent": parent, "leaf_bits": leaf_bits,
             "leaf_first": first, "leaf_count": count, "leaf_depth": depth[leaf_row] + 1,
             "leaf_row": leaf_row, "leaf_slot": leaf_slot}
@@ -163,7 +177,7 @@ def check_bvh(structure, vertices, faces, **params):
     if root_is_leaf:
         assert int(tree["refs"][0, 0]) < 0 and filled[0, 0] == (t_count > 0)
         assert t_count <= params["max_leaf_size"]
-        np.testing.assert_array_equal(boxes[0, 1:], 0)
+        assert (tree["q"][0, 1:, 0] == 255).all() and (tree["q"][0, 1:, 1] == 0).all()
         np.testing.assert_array_equal(counts, [t_count] + [0] * (width - 1))
         interior, n_leaves, depth = 0, 1, 0
         real = counts[:1]
@@ -171,9 +185,9 @@ def check_bvh(structure, vertices, faces, **params):
         # The greedy collapse: 2 to W children, fewer than W only when all are leaves.
         assert np.all(children >= 2)
         assert np.all((children == width) | ~(tree["is_node"].any(axis=1)))
-        # Filled slots first; empty slots are the empty leaf with a zero box.
+        # Filled slots first; empty slots are the empty leaf with an inverted box.
         assert np.all(np.sort(~filled, axis=1, kind="stable") == ~filled)
-        np.testing.assert_array_equal(boxes[~filled], 0)
+        assert (tree["q"][~filled][:, 0] == 255).all() and (tree["q"][~filled][:, 1] == 0).all()
         real = counts[filled[tree["leaf_row"], tree["leaf_slot"]]]
         assert (real >= 1).all(), "an empty leaf in a tree with interior nodes"
         interior, n_leaves = nodes.shape[0], len(real)
@@ -196,11 +210,34 @@ def check_bvh(structure, vertices, faces, **params):
     else:
         assert stats["binary_depth"] >= 64  # only the depth limit may leave a bigger leaf
 
-    # Boxes: the exact float32 bounds of the subtree's triangles (an empty leaf: zeros).
+    # Boxes: each contains the exact float32 bounds of its subtree's triangles, within one
+    # quantisation step on each side; an empty slot's is inverted (lower 255, upper 0).
     empty = tree["below"] == 0
-    np.testing.assert_array_equal(boxes[empty], 0)
-    np.testing.assert_array_equal(boxes[~empty][:, 0], tree["lo"][~empty])
-    np.testing.assert_array_equal(boxes[~empty][:, 1], tree["hi"][~empty])
+    np.testing.assert_array_equal(empty, ~filled)
+    q, scale, origin = tree["q"], tree["scale"], tree["origin"]
+    assert (q[empty][:, 0] == 255).all() and (q[empty][:, 1] == 0).all()
+    exact = np.stack([tree["lo"], tree["hi"]], axis=2)  # [m, W, 2, 3]
+    assert (boxes[~empty][:, 0] <= exact[~empty][:, 0]).all()
+    assert (boxes[~empty][:, 1] >= exact[~empty][:, 1]).all()
+    step = scale[:, None, :].repeat(width, axis=1)[~empty]  # [k, 3]
+    tighter_lo = np.minimum(q[~empty][:, 0] + 1, 255) * step + origin[:, None, :].repeat(
+        width, axis=1)[~empty]
+    tighter_hi = np.maximum(q[~empty][:, 1] - 1, 0) * step + origin[:, None, :].repeat(
+        width, axis=1)[~empty]
+    assert ((tighter_lo.astype(np.float32) >= exact[~empty][:, 0]) | (q[~empty][:, 0] == 255)).all()
+    assert ((tighter_hi.astype(np.float32) <= exact[~empty][:, 1]) | (q[~empty][:, 1] == 0)).all()
+    # The frame: the union of the filled children's exact boxes, in steps of the smallest
+    # power of two (at least 2^-100) that spans it in 255 of them.
+    any_filled = filled.any(axis=1)
+    lower = np.where(filled[..., None], tree["lo"], np.inf).min(axis=1)[any_filled]
+    upper = np.where(filled[..., None], tree["hi"], -np.inf).max(axis=1)[any_filled]
+    np.testing.assert_array_equal(origin[any_filled], lower)
+    mantissa, _ = np.frexp(scale)
+    assert (mantissa == 0.5).all(), "scales are powers of two"
+    extent = upper.astype(np.float64) - lower
+    frame = scale[any_filled].astype(np.float64)
+    assert (255 * frame >= extent).all()
+    assert ((255 * frame / 2 < extent) | (frame == 2.0**-100)).all()
 
     # The object median halves every interior node (the smaller half on the left); only
     # the binary tree shows its halves.
