@@ -1499,7 +1499,8 @@ def _findings5(records, rand) -> str:
         parts.append("These builders widen cells and planes by 2^-16 of the coordinates' "
                      "magnitude (accel.geometry.CELL_MARGIN); far from the origin that margin "
                      "exceeds the triangles themselves and the references multiply. The BVH "
-                     "(exact float32 boxes) builds everywhere.")
+                     "(boxes quantised in each node's own frame, never widened by the "
+                     "coordinates' magnitude) builds everywhere.")
     rays = records[0]["rays"] if records else 0
     parts.append(f"Primary hits against the untranslated float64 reference ({rays:,} rays): "
                  + (", ".join(f"{k} {v}" for k, v in mism.items()) if mism else "no mismatch")
