@@ -411,11 +411,11 @@ def node_rows(lo: np.ndarray, hi: np.ndarray, ref: np.ndarray) -> np.ndarray:
     fields = np.concatenate([q_lo, q_hi], axis=2).transpose(0, 2, 1).reshape(k, 6 * width)
     bound_bytes = np.zeros((k, 4 * bound_words(width)), "<u1")
     bound_bytes[:, :6 * width] = fields
+    column = reference_column(width)
     nodes = np.zeros((k, row_words(width)), np.int32)
     nodes[:, 0:3] = origin[:, 0].view(np.int32)
-    nodes[:, 3:6] = scale[:, 0].view(np.int32)
-    nodes[:, FRAME_WORDS:reference_column(width)] = bound_bytes.view("<i4")
-    column = reference_column(width)
+    nodes[:, 3:FRAME_WORDS] = scale[:, 0].view(np.int32)
+    nodes[:, FRAME_WORDS:column] = bound_bytes.view("<i4")
     nodes[:, column:column + width] = ref.astype(np.int32)
     return nodes
 
