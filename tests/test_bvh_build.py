@@ -61,6 +61,11 @@ def half_area(lo, hi) -> np.ndarray:
     return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
 
 
+def dequantise(origin, scale, q) -> np.ndarray:
+    """The documented decode of bound bytes: origin + q * scale in float32 (q * scale exact)."""
+    return (origin + np.asarray(q).astype(np.float32) * scale).astype(np.float32)
+
+
 def decode(structure) -> dict:
     """Decode the node rows into a tree, asserting its shape on the way.
 
@@ -87,9 +92,7 @@ def decode(structure) -> dict:
     # Little-endian bytes, field-major: byte f * W + c is field f of child c.
     q = np.ascontiguousarray(nodes[:, 6:ref_col]).view("<u1")[:, :6 * width]
     q = q.reshape(-1, 6, width).transpose(0, 2, 1).reshape(-1, width, 2, 3)  # [m, W, 2, 3]
-    # The documented decode, origin + q * scale in float32 (q * scale exact).
-    boxes = (origin[:, None, None, :] + q.astype(np.float32) * scale[:, None, None, :]
-             ).astype(np.float32)
+    boxes = dequantise(origin[:, None, None, :], scale[:, None, None, :], q)
     m, t_count = nodes.shape[0], triangles.shape[0]
 
     # Interior references: every row but the root referenced exactly once, by an earlier
@@ -219,13 +222,14 @@ def check_bvh(structure, vertices, faces, **params):
     exact = np.stack([tree["lo"], tree["hi"]], axis=2)  # [m, W, 2, 3]
     assert (boxes[~empty][:, 0] <= exact[~empty][:, 0]).all()
     assert (boxes[~empty][:, 1] >= exact[~empty][:, 1]).all()
-    step = scale[:, None, :].repeat(width, axis=1)[~empty]  # [k, 3]
-    tighter_lo = np.minimum(q[~empty][:, 0] + 1, 255) * step + origin[:, None, :].repeat(
-        width, axis=1)[~empty]
-    tighter_hi = np.maximum(q[~empty][:, 1] - 1, 0) * step + origin[:, None, :].repeat(
-        width, axis=1)[~empty]
-    assert ((tighter_lo.astype(np.float32) >= exact[~empty][:, 0]) | (q[~empty][:, 0] == 255)).all()
-    assert ((tighter_hi.astype(np.float32) <= exact[~empty][:, 1]) | (q[~empty][:, 1] == 0)).all()
+    # One step tighter on either side no longer contains the exact box.
+    frame_origin = np.broadcast_to(origin[:, None], q.shape[:2] + (3,))[~empty]
+    frame_scale = np.broadcast_to(scale[:, None], q.shape[:2] + (3,))[~empty]
+    q_lo, q_hi = q[~empty][:, 0].astype(np.int64), q[~empty][:, 1].astype(np.int64)
+    tighter_lo = dequantise(frame_origin, frame_scale, np.minimum(q_lo + 1, 255))
+    tighter_hi = dequantise(frame_origin, frame_scale, np.maximum(q_hi - 1, 0))
+    assert ((tighter_lo >= exact[~empty][:, 0]) | (q_lo == 255)).all()
+    assert ((tighter_hi <= exact[~empty][:, 1]) | (q_hi == 0)).all()
     # The frame: the union of the filled children's exact boxes, in steps of the smallest
     # power of two (at least 2^-100) that spans it in 255 of them.
     any_filled = filled.any(axis=1)
