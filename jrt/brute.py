@@ -98,7 +98,8 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
     best_t, best_row = lax.map(per_ray_chunk, (o, d, tm))
     best_t, best_row = best_t.reshape(-1)[:n], best_row.reshape(-1)[:n]
     # The winner's t, u, v evaluated once, as every traversal does (see winner_hits).
-    return winner_hits(fn, origins, directions, tri_chunks.reshape(-1, 3, 3),
+    return winner_hits(fn, jnp.concatenate([origins, directions], axis=1),
+                       tri_chunks.reshape(-1, 3, 3),
                        jnp.pad(triangle_ids, (0, tri_chunks.shape[0] * tri_chunk
                                               - triangle_ids.shape[0])), best_row)
 

@@ -58,42 +58,61 @@ def gather_triangles(triangles, rows):
 WINNER_CHUNK = 1024
 
 
-def winner_hits(fn, origins, directions, triangles, triangle_ids, rows) -> Hits:
+def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
     """The hit record of each ray's winning row (-1: a miss), evaluated in one place.
+
+    ``rays`` [n, C] holds each ray's origin in columns 0-2 and its direction in 3-5 (the
+    engine's packed rows, C = 10, or origins and directions side by side, C = 6).
 
     XLA fuses the kernel differently inside each traversal loop, and the compiled code
     may round one ulp differently (fused multiply-adds); evaluating t, u, v of the winner
     once, elementwise over all rays, gives every structure (and brute force) the same
-    numbers for the same triangle. The rays go through in chunks of ``WINNER_CHUNK``
-    (``lax.map``): one fixed-shape computation in every program, wherever a ray sits in
-    the batch. Evaluated over the whole batch at once, the kernel was compiled per program
-    and per batch size, and a change elsewhere in the engine moved u, v of two camel rays
-    in 20k by an ulp (vectorised loop against its scalar remainder).
+    numbers for the same triangle. The rays go through in chunks of ``WINNER_CHUNK``: one
+    fixed-shape computation in every program, wherever a ray sits in the batch. Evaluated
+    over the whole batch at once, the kernel was compiled per program and per batch size,
+    and a change elsewhere in the engine moved u, v of two camel rays in 20k by an ulp
+    (vectorised loop against its scalar remainder).
+
+    Each chunk is sliced from the rows in place (the last one ends at the last ray and
+    overlaps the one before it, whose rays it evaluates again to the same bits): padding
+    copies of the ray arrays cost more than the kernel on the engine's interleaved
+    shares. A chunk without a winning row (a patch of sky) skips the kernel.
     """
     n = rows.shape[0]
-    chunks = max(1, -(-n // WINNER_CHUNK))
-    pad = chunks * WINNER_CHUNK - n
-    rows = jnp.pad(jnp.where(rows >= 0, rows, -1), (0, pad), constant_values=-1)
-    origins = jnp.pad(origins, ((0, pad), (0, 0)))
-    directions = jnp.pad(directions, ((0, pad), (0, 0)), constant_values=1.0)
+    if n < WINNER_CHUNK:  # one padded chunk, so that the kernel keeps its compiled shape
+        pad = WINNER_CHUNK - n
+        return jax.tree.map(lambda a: a[:n], winner_hits(
+            fn, jnp.pad(rays, ((0, pad), (0, 0))), triangles, triangle_ids,
+            jnp.pad(rows, (0, pad), constant_values=-1)))
     empty = triangles.shape[0] == 0
 
-    def chunk(args):
-        origins, directions, rows = args
-        safe = jnp.maximum(rows, 0)
-        if empty:
-            tri = jnp.zeros((rows.shape[0], 3, 3), origins.dtype)
-            face = jnp.full(rows.shape, -1, jnp.int32)
-        else:
-            tri = gather_triangles(triangles, safe)
-            face = triangle_ids[safe]
-        t, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
-        hit = (rows >= 0) & (t < jnp.inf)
+    def misses():
+        return Hits(t=jnp.full(WINNER_CHUNK, jnp.inf, jnp.float32),
+                    triangle=jnp.full(WINNER_CHUNK, -1, jnp.int32),
+                    u=jnp.zeros(WINNER_CHUNK, jnp.float32), v=jnp.zeros(WINNER_CHUNK, jnp.float32))
+
+    def evaluate(start, chunk_rows):
+        r = lax.dynamic_slice_in_dim(rays, start, WINNER_CHUNK)
+        safe = jnp.maximum(chunk_rows, 0)
+        tri = gather_triangles(triangles, safe)
+        t, u, v = fn(r[:, 0:3], r[:, 3:6], tri[:, 0], tri[:, 1], tri[:, 2])
+        hit = (chunk_rows >= 0) & (t < jnp.inf)
         zero = jnp.zeros_like(t)
-        return Hits(t=jnp.where(hit, t, jnp.inf), triangle=jnp.where(hit, face, -1),
+        return Hits(t=jnp.where(hit, t, jnp.inf),
+                    triangle=jnp.where(hit, triangle_ids[safe], -1),
                     u=jnp.where(hit, u, zero), v=jnp.where(hit, v, zero))
 
-    shape = (chunks, WINNER_CHUNK)
-    hits = lax.map(chunk, (origins.reshape(shape + (3,)), directions.reshape(shape + (3,)),
-                           rows.reshape(shape)))
-    return jax.tree.map(lambda a: a.reshape(-1)[:n], hits)
+    def body(i, out):
+        start = jnp.minimum(i * WINNER_CHUNK, n - WINNER_CHUNK)
+        chunk_rows = lax.dynamic_slice_in_dim(rows, start, WINNER_CHUNK)
+        if empty:
+            hits = misses()
+        else:
+            hits = lax.cond(jnp.any(chunk_rows >= 0), evaluate, lambda *_: misses(), start,
+                            chunk_rows)
+        return jax.tree.map(lambda a, b: lax.dynamic_update_slice_in_dim(a, b, start, 0),
+                            out, hits)
+
+    out = Hits(t=jnp.zeros(n, jnp.float32), triangle=jnp.zeros(n, jnp.int32),
+               u=jnp.zeros(n, jnp.float32), v=jnp.zeros(n, jnp.float32))
+    return lax.fori_loop(0, -(-n // WINNER_CHUNK), body, out)
