@@ -1,6 +1,6 @@
 """BVH on the camel: build, then closest hit and occlusion beside Embree, all cores for both.
 
-    python -m benchmarks.bvh [--rays 1000000] [--repeats 3] [--json out/bvh.json]
+    python -m benchmarks.bvh [--rays 1000000] [--repeats 5] [--json out/bvh.json]
 
 - Build: the binned-SAH and object-median BVHs, median of ``--builds`` builds, with the
   statistics of the structure (nodes of the default width, 4).
@@ -9,9 +9,12 @@
 - Trace: camera rays (``jrt.raysets.camera_set``) and incoherent rays (origins on a
   sphere, aimed at random points of the box). jrt's BVH on every XLA CPU device (one per
   core, see ``jrt._xla``) against Embree (embreex, robust mode) with one Python thread per
-  core, in this same process; jrt's first call (compile and run) is reported apart, rates
-  are the best of ``--repeats`` warm calls. Brute force runs on a subset of
-  ``--brute-rays`` rays for the speed-up over it.
+  core, in this same process; jrt's first call (compile and run) is reported apart. The
+  timed calls come in ``--repeats`` rounds, each calling Embree and every jrt variant in
+  turn (``benchmarks.common.interleaved_times``), so that all meet the same drift of the
+  machine's speed: rates are the best call of each, ``x Embree`` the ratio of the bests,
+  and ``paired`` the median over the rounds of Embree's time over jrt's in the same
+  round. Brute force runs on a subset of ``--brute-rays`` rays for the speed-up over it.
 - Occlusion: any-hit rays toward each ray's closest hit (half of them stopped short).
 
 Ratios to Embree are the figures to quote: absolute times drift on a shared machine.
@@ -31,7 +34,7 @@ import numpy as np
 import accel
 import accel.bvh as accel_bvh
 import jrt
-from benchmarks.common import best_time, write_record
+from benchmarks.common import best_time, interleaved_times, write_record
 from benchmarks.peers import EmbreePeer
 from jrt.raysets import camera_set, incoherent_set
 
@@ -45,7 +48,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--rays", type=int, default=1_000_000, help="rays per set")
     parser.add_argument("--brute-rays", type=int, default=8192,
                         help="rays of each set traced by brute force (default 8192)")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="timed rounds; each round calls jrt and Embree in turn")
     parser.add_argument("--builds", type=int, default=5)
     parser.add_argument("--kernel", default="watertight", choices=tuple(jrt.KERNELS))
     parser.add_argument("--lanes", type=int, default=None,
@@ -97,7 +101,8 @@ def main(argv=None) -> dict:
     embree = EmbreePeer(mesh.vertices, mesh.faces)
     sets = {"camera": camera_set(mesh.vertices, args.rays),
             "incoherent": incoherent_set(mesh.vertices, args.rays, seed=0)}
-    print(f"{'set':<11} {'query':<9} {'method':<18} {'Mrays/s':>9} {'x Embree':>9} notes")
+    print(f"{'set':<11} {'query':<9} {'method':<18} {'Mrays/s':>9} {'x Embree':>9} "
+          f"{'paired':>9} notes")
     for name, (o, d) in sets.items():
         o, d = o[: args.rays], d[: args.rays]
         n = len(o)
@@ -109,8 +114,15 @@ def main(argv=None) -> dict:
         start = time.perf_counter()
         hits = jrt_closest()
         first = time.perf_counter() - start
-        t_jrt = best_time(jrt_closest, args.repeats)
-        t_emb = best_time(lambda o=o, d=d: embree.closest_hit(o, d, threads=cores), args.repeats)
+        for s in wide.values():  # compiled before the timed rounds
+            jrt_closest(s)
+        default = f"jrt bvh width {bvh.stats['width']}"
+        closest = interleaved_times({
+            "embree": lambda o=o, d=d: embree.closest_hit(o, d, threads=cores),
+            default: jrt_closest,
+            **{f"jrt bvh width {w}": (lambda s=s: jrt_closest(s)) for w, s in wide.items()},
+        }, args.repeats)
+        t_emb, t_jrt = min(closest["embree"]), min(closest[default])
         ob, db = oj[: args.brute_rays], dj[: args.brute_rays]
         brute_run = lambda ob=ob, db=db: _ready(  # noqa: E731
             jrt.closest_hit(brute, ob, db, kernel=args.kernel))
@@ -120,18 +132,17 @@ def main(argv=None) -> dict:
                                     counters=True)
         counts = {k: float(np.asarray(v).mean()) for k, v in counts._asdict().items()}
         rows = [
-            ("closest", "embree", t_emb, ""),
-            ("closest", f"jrt bvh width {bvh.stats['width']}", t_jrt,
+            ("closest", "embree", closest["embree"], ""),
+            ("closest", default, closest[default],
              f"first call {first:.1f} s; {t_brute / t_jrt:,.0f}x brute force; "
              f"steps {counts['steps']:.1f}, tests {counts['tests']:.1f}, "
              f"leaves {counts['leaves']:.1f} per ray"),
-            ("closest", "jrt brute (est.)", t_brute, f"from {len(ob):,} rays"),
+            ("closest", "jrt brute (est.)", [t_brute], f"from {len(ob):,} rays"),
         ]
         for w, s in wide.items():
-            t_w = best_time(lambda s=s: jrt_closest(s), args.repeats)
             _, c = jrt.closest_hit(s, oj, dj, kernel=args.kernel, lanes=args.lanes,
                                    counters=True)
-            rows.append(("closest", f"jrt bvh width {w}", t_w,
+            rows.append(("closest", f"jrt bvh width {w}", closest[f"jrt bvh width {w}"],
                          f"steps {float(np.asarray(c.steps).mean()):.1f}, "
                          f"tests {float(np.asarray(c.tests).mean()):.1f} per ray"))
         # Occlusion toward the closest hit: half the rays stop short of it.
@@ -143,21 +154,28 @@ def main(argv=None) -> dict:
         occ_run = lambda oj=oj, dj=dj, tj=tj: _ready(  # noqa: E731
             jrt.occluded(bvh, oj, dj, tj, kernel=args.kernel, lanes=args.lanes))
         occ_run()
-        t_occ = best_time(occ_run, args.repeats)
-        t_emb_occ = best_time(lambda o=o, d=d, tm=tmax: embree.occluded(o, d, tm, threads=cores),
-                          args.repeats)
-        rows += [("occluded", "embree", t_emb_occ, ""),
-                 ("occluded", f"jrt bvh width {bvh.stats['width']}", t_occ, "")]
-        for query, method, seconds, notes in rows:
-            ref = t_emb if query == "closest" else t_emb_occ
+        occluded = interleaved_times({
+            "embree": lambda o=o, d=d, tm=tmax: embree.occluded(o, d, tm, threads=cores),
+            default: occ_run}, args.repeats)
+        rows += [("occluded", "embree", occluded["embree"], ""),
+                 ("occluded", default, occluded[default], "")]
+        embree_times = {"closest": closest["embree"], "occluded": occluded["embree"]}
+        for query, method, times, notes in rows:
+            seconds = min(times)
+            ref = embree_times[query]
             rate = n / seconds / 1e6
+            # Round by round (interleaved_times): Embree's time over this method's.
+            paired = (statistics.median(e / t for e, t in zip(ref, times, strict=True))
+                      if len(times) == len(ref) else None)
             record["trace"].append({
                 "set": name, "query": query, "method": method, "rays": n,
-                "seconds": seconds, "mrays_per_s": rate, "ratio_to_embree": ref / seconds,
+                "seconds": seconds, "seconds_all": list(times), "mrays_per_s": rate,
+                "ratio_to_embree": min(ref) / seconds, "ratio_to_embree_paired_median": paired,
                 "notes": notes, **({"counters": counts, "first_call_seconds": first}
-                                   if method == f"jrt bvh width {bvh.stats['width']}"
-                                   and query == "closest" else {})})
-            print(f"{name:<11} {query:<9} {method:<18} {rate:9.3f} {ref / seconds:9.3f} {notes}")
+                                   if method == default and query == "closest" else {})})
+            paired_text = "" if paired is None else f"{paired:9.3f}"
+            print(f"{name:<11} {query:<9} {method:<18} {rate:9.3f} {min(ref) / seconds:9.3f} "
+                  f"{paired_text:>9} {notes}")
     write_record(record, args.json)
     return record
 

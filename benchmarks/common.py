@@ -76,6 +76,24 @@ def time_calls(fn, repeats: int) -> list[float]:
     return times
 
 
+def interleaved_times(fns: dict, repeats: int) -> dict[str, list[float]]:
+    """Wall times of ``repeats`` rounds in which every function of ``fns`` (label: fn) is
+    called once, in turn: each label's times in round order.
+
+    On a shared machine the speed drifts by tens of percent within a minute; called in
+    turn, the peers meet the same drift, so the best of each, and the ratio of their
+    times round by round, compare like with like (a block of one peer's calls, then a
+    block of the other's, can land one block in a slow spell).
+    """
+    times: dict[str, list[float]] = {label: [] for label in fns}
+    for _ in range(repeats):
+        for label, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            times[label].append(time.perf_counter() - start)
+    return times
+
+
 def best_time(fn, repeats: int) -> float:
     """The shortest wall time of ``repeats`` calls of ``fn`` (seconds)."""
     return min(time_calls(fn, repeats))

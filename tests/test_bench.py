@@ -240,3 +240,17 @@ def test_json_writer_keeps_number_arrays_on_one_line(results):
     (hm,) = _records(results, "heatmap", structure=STRUCTURES[0])
     assert len(text.splitlines()) < len(json.dumps(results, indent=2).splitlines()) / 4
     assert json.dumps(hm["steps"][0]) in text  # "[a, b, ...]" on one line
+
+
+def test_interleaved_times_calls_each_peer_once_a_round_in_turn():
+    """The benchmarks' timing rounds (benchmarks.common.interleaved_times): every label
+    gets one time per round, and the calls alternate (a, b, a, b, ...), never a block of
+    one peer followed by a block of the other."""
+    from benchmarks.common import interleaved_times
+
+    calls = []
+    times = interleaved_times({"a": lambda: calls.append("a"),
+                               "b": lambda: calls.append("b")}, 3)
+    assert calls == ["a", "b"] * 3
+    assert list(times) == ["a", "b"]
+    assert all(len(v) == 3 and all(t >= 0 for t in v) for v in times.values())
