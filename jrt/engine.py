@@ -252,7 +252,9 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
                                  tuple(jnp.max(corners, 0)))
         return ((near <= far) & (near <= every.tmax)).astype(jnp.int32)
 
-    hit_box = computed_once(jnp.int32(n) > 0, can_hit, every, always=True)
+    # Any run-time predicate: both branches compute the test (a constant one would be
+    # folded, and the conditional with it).
+    hit_box = computed_once(every.tmax[0] > 0, can_hit, every, always=True)
     rank = jnp.cumsum(hit_box) - 1
     queued = rank[-1] + 1
     queue = jnp.full(n, n, jnp.int32).at[jnp.where(hit_box > 0, rank, n)].set(
