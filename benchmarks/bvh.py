@@ -122,7 +122,7 @@ def main(argv=None) -> dict:
             default: jrt_closest,
             **{f"jrt bvh width {w}": (lambda s=s: jrt_closest(s)) for w, s in wide.items()},
         }, args.repeats)
-        t_emb, t_jrt = min(closest["embree"]), min(closest[default])
+        t_jrt = min(closest[default])
         ob, db = oj[: args.brute_rays], dj[: args.brute_rays]
         brute_run = lambda ob=ob, db=db: _ready(  # noqa: E731
             jrt.closest_hit(brute, ob, db, kernel=args.kernel))

@@ -243,7 +243,9 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     # The queue is a stream compaction: each ray's rank among those that can hit (an
     # inclusive prefix sum) and one scatter of the ray ids to their ranks. jnp.nonzero
     # compiled to a slower scatter-add loop and a prefix sum that recomputed the box test;
-    # here the test is materialised once (computed_once) for the sum and the scatter.
+    # here the test is materialised once (computed_once, both branches computing it, so
+    # any run-time predicate will do; a constant one would be folded with the conditional)
+    # for the sum and the scatter.
     every = _as_ray(rays)  # slices, not a gather of every row (10 ms on 500k rays)
     corners = triangles.reshape(-1, 3)
 
@@ -252,8 +254,6 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
                                  tuple(jnp.max(corners, 0)))
         return ((near <= far) & (near <= every.tmax)).astype(jnp.int32)
 
-    # Any run-time predicate: both branches compute the test (a constant one would be
-    # folded, and the conditional with it).
     hit_box = computed_once(every.tmax[0] > 0, can_hit, every, always=True)
     rank = jnp.cumsum(hit_box) - 1
     queued = rank[-1] + 1

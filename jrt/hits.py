@@ -86,11 +86,6 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
             jnp.pad(rows, (0, pad), constant_values=-1)))
     empty = triangles.shape[0] == 0
 
-    def misses():
-        return Hits(t=jnp.full(WINNER_CHUNK, jnp.inf, jnp.float32),
-                    triangle=jnp.full(WINNER_CHUNK, -1, jnp.int32),
-                    u=jnp.zeros(WINNER_CHUNK, jnp.float32), v=jnp.zeros(WINNER_CHUNK, jnp.float32))
-
     def evaluate(start, chunk_rows):
         r = lax.dynamic_slice_in_dim(rays, start, WINNER_CHUNK)
         safe = jnp.maximum(chunk_rows, 0)
@@ -106,13 +101,17 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
         start = jnp.minimum(i * WINNER_CHUNK, n - WINNER_CHUNK)
         chunk_rows = lax.dynamic_slice_in_dim(rows, start, WINNER_CHUNK)
         if empty:
-            hits = misses()
+            hits = _misses(WINNER_CHUNK)
         else:
-            hits = lax.cond(jnp.any(chunk_rows >= 0), evaluate, lambda *_: misses(), start,
-                            chunk_rows)
+            hits = lax.cond(jnp.any(chunk_rows >= 0), evaluate,
+                            lambda *_: _misses(WINNER_CHUNK), start, chunk_rows)
         return jax.tree.map(lambda a, b: lax.dynamic_update_slice_in_dim(a, b, start, 0),
                             out, hits)
 
-    out = Hits(t=jnp.zeros(n, jnp.float32), triangle=jnp.zeros(n, jnp.int32),
-               u=jnp.zeros(n, jnp.float32), v=jnp.zeros(n, jnp.float32))
-    return lax.fori_loop(0, -(-n // WINNER_CHUNK), body, out)
+    return lax.fori_loop(0, -(-n // WINNER_CHUNK), body, _misses(n))
+
+
+def _misses(n: int) -> Hits:
+    """The hit record of ``n`` rays that hit nothing."""
+    return Hits(t=jnp.full(n, jnp.inf, jnp.float32), triangle=jnp.full(n, -1, jnp.int32),
+                u=jnp.zeros(n, jnp.float32), v=jnp.zeros(n, jnp.float32))
