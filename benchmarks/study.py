@@ -1,6 +1,6 @@
 """``jrt study``: the whole study of the camel in one command.
 
-    jrt study [-o reports/camel] [--quick | --full] [--skip STEPS]
+    jrt study [-o reports/camel] [--quick | --full] [--skip STEPS] [--structures NAMES]
 
 Runs, in this order, each writing its JSON into the output folder:
 
@@ -16,8 +16,11 @@ Defaults fit in about 15 minutes on 2 cores (the full benchmark suite, the stabi
 suite at its ``standard`` size, the work-precision study's quick points); ``--full`` runs
 the stability suite's full sweep and every work-precision point as well (about 45
 minutes: what ``reports/camel/`` is published from); ``--quick`` (small ray sets, the
-19k camel where a step allows it, small images) in a few minutes, and is what CI runs. A step that
-fails stops the study with its error; the JSON of the steps before it stays in the folder.
+19k camel where a step allows it, small images) in about five minutes, and is what CI
+runs. ``--structures`` limits the benchmark suite to some acceleration structures (brute
+force, its reference, always runs; the stability suite picks its own per case). A step
+that fails stops the study with its error; the JSON of the steps before it stays in the
+folder.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+
+from benchmarks.structures import ENGINE_STRUCTURES
 
 #: Render sizes (width, height) of the built-in scenes, full and --quick.
 RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
@@ -50,10 +55,26 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--skip", default="",
                         help="comma-separated steps to skip, from bench, stability, "
                         "work_precision, renders (their JSON, if present, is reused)")
+    parser.add_argument("--structures", default=None,
+                        help="comma-separated acceleration structures for the benchmark "
+                        f"suite, from {', '.join(ENGINE_STRUCTURES)} (default all; brute "
+                        "force always runs)")
     return parser
 
 
 STEPS = ("bench", "stability", "work_precision", "renders")
+
+
+def _check_structures(text: str | None) -> list[str] | None:
+    """The structures named by ``--structures`` (None: every one), checked."""
+    if text is None:
+        return None
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    unknown = sorted(set(names) - set(ENGINE_STRUCTURES))
+    if unknown or not names:
+        raise SystemExit(f"jrt study: error: unknown structure(s) {unknown or '(none)'} in "
+                         f"--structures; allowed: {', '.join(ENGINE_STRUCTURES)}")
+    return names
 
 
 def _check_skip(text: str) -> set[str]:
@@ -124,6 +145,7 @@ def _render_scenes(quick: bool) -> list[str]:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     skip = _check_skip(args.skip)
+    structures = _check_structures(args.structures)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     quick = ["--quick"] if args.quick else []
@@ -143,6 +165,8 @@ def main(argv=None) -> int:
     sizes = {"stability": ["--size", "quick" if args.quick else "full" if args.full
                            else "standard"],
              "work_precision": [] if args.full else ["--quick"]}
+    if structures is not None:  # brute force, the suite's reference, runs anyway
+        sizes["bench"] = quick + ["--structures", ",".join(structures)]
     for name in ("bench", "stability", "work_precision"):
         step(name, lambda name=name: _ok(_module(name).main(
             ["-o", str(jsons[name])] + sizes.get(name, quick))))

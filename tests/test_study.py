@@ -38,10 +38,16 @@ def test_study_with_nothing_to_report_says_so(tmp_path):
         main(["study", "-o", str(tmp_path), "--skip", "bench,stability,work_precision,renders"])
 
 
+def test_study_rejects_an_unknown_structure(tmp_path):
+    with pytest.raises(SystemExit, match="unknown structure"):
+        main(["study", "-o", str(tmp_path), "--structures", "bvh,octtree"])
+
+
 def test_quick_study_end_to_end(tmp_path):
     """``jrt study --quick``, the whole chain as a user runs it (a process of its own, as
     the command would be): every step's JSON, the renders, the report and its figures,
-    each checked against its own schema or format."""
+    each checked against its own schema or format. Two structures (and brute force) keep
+    it to a few minutes of CI; every structure has its own tests in the suites'."""
     import json
     import subprocess
     import sys
@@ -53,14 +59,17 @@ def test_quick_study_end_to_end(tmp_path):
     out = tmp_path / "camel"
     run = subprocess.run(
         [sys.executable, "-c", "import sys; from jrt.cli import main; sys.exit(main())",
-         "study", "--quick", "-o", str(out)],
+         "study", "--quick", "--structures", "bvh,grid", "-o", str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=1200)
     assert run.returncode == 0, run.stderr[-3000:]
     printed = run.stdout
     print(printed[-2000:])
     for step in ("bench", "stability", "work_precision", "renders"):
         assert f"[study] {step}: " in printed and f"{step}: skipped" not in printed
-    validate(json.loads((out / "bench.json").read_text()))
+    bench = json.loads((out / "bench.json").read_text())
+    validate(bench)
+    benched = {r.get("structure") for r in bench["records"]}
+    assert {"bvh", "grid"} <= benched and not benched & {"kdtree", "octree", "bsp"}, benched
     stability = json.loads((out / "stability.json").read_text())
     assert stability["size"] == "quick"
     assert sorted(map(int, stability["cases"])) == list(CASES)
