@@ -29,7 +29,7 @@ import argparse
 import time
 from pathlib import Path
 
-from benchmarks.structures import ENGINE_STRUCTURES
+from benchmarks.structures import ENGINE_STRUCTURES, _structures
 
 #: Render sizes (width, height) of the built-in scenes, full and --quick.
 RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--skip", default="",
                         help="comma-separated steps to skip, from bench, stability, "
                         "work_precision, renders (their JSON, if present, is reused)")
-    parser.add_argument("--structures", default=None,
+    parser.add_argument("--structures", type=_structures, default=None,
                         help="comma-separated acceleration structures for the benchmark "
                         f"suite, from {', '.join(ENGINE_STRUCTURES)} (default all; brute "
                         "force always runs)")
@@ -63,18 +63,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 STEPS = ("bench", "stability", "work_precision", "renders")
-
-
-def _check_structures(text: str | None) -> list[str] | None:
-    """The structures named by ``--structures`` (None: every one), checked."""
-    if text is None:
-        return None
-    names = [s.strip() for s in text.split(",") if s.strip()]
-    unknown = sorted(set(names) - set(ENGINE_STRUCTURES))
-    if unknown or not names:
-        raise SystemExit(f"jrt study: error: unknown structure(s) {unknown or '(none)'} in "
-                         f"--structures; allowed: {', '.join(ENGINE_STRUCTURES)}")
-    return names
 
 
 def _check_skip(text: str) -> set[str]:
@@ -145,7 +133,6 @@ def _render_scenes(quick: bool) -> list[str]:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     skip = _check_skip(args.skip)
-    structures = _check_structures(args.structures)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     quick = ["--quick"] if args.quick else []
@@ -165,8 +152,8 @@ def main(argv=None) -> int:
     sizes = {"stability": ["--size", "quick" if args.quick else "full" if args.full
                            else "standard"],
              "work_precision": [] if args.full else ["--quick"]}
-    if structures is not None:  # brute force, the suite's reference, runs anyway
-        sizes["bench"] = quick + ["--structures", ",".join(structures)]
+    if args.structures is not None:  # brute force, the suite's reference, runs anyway
+        sizes["bench"] = quick + ["--structures", ",".join(args.structures)]
     for name in ("bench", "stability", "work_precision"):
         step(name, lambda name=name: _ok(_module(name).main(
             ["-o", str(jsons[name])] + sizes.get(name, quick))))
