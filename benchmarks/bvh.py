@@ -114,11 +114,12 @@ def main(argv=None) -> dict:
         start = time.perf_counter()
         hits = jrt_closest()
         first = time.perf_counter() - start
-        for s in wide.values():  # compiled before the timed rounds
-            jrt_closest(s)
+        embree_closest = lambda o=o, d=d: embree.closest_hit(o, d, threads=cores)  # noqa: E731
+        for run in (embree_closest, *(lambda s=s: jrt_closest(s) for s in wide.values())):
+            run()  # every peer warm (compiled, threads started) before the timed rounds
         default = f"jrt bvh width {bvh.stats['width']}"
         closest = interleaved_times({
-            "embree": lambda o=o, d=d: embree.closest_hit(o, d, threads=cores),
+            "embree": embree_closest,
             default: jrt_closest,
             **{f"jrt bvh width {w}": (lambda s=s: jrt_closest(s)) for w, s in wide.items()},
         }, args.repeats)
@@ -153,20 +154,23 @@ def main(argv=None) -> dict:
         tj = jax.device_put(tmax)
         occ_run = lambda oj=oj, dj=dj, tj=tj: _ready(  # noqa: E731
             jrt.occluded(bvh, oj, dj, tj, kernel=args.kernel, lanes=args.lanes))
+        embree_occluded = lambda o=o, d=d, tm=tmax: embree.occluded(  # noqa: E731
+            o, d, tm, threads=cores)
         occ_run()
-        occluded = interleaved_times({
-            "embree": lambda o=o, d=d, tm=tmax: embree.occluded(o, d, tm, threads=cores),
-            default: occ_run}, args.repeats)
+        embree_occluded()
+        occluded = interleaved_times({"embree": embree_occluded, default: occ_run},
+                                     args.repeats)
         rows += [("occluded", "embree", occluded["embree"], ""),
                  ("occluded", default, occluded[default], "")]
-        embree_times = {"closest": closest["embree"], "occluded": occluded["embree"]}
+        rounds = {"closest": closest, "occluded": occluded}  # the interleaved calls
         for query, method, times, notes in rows:
             seconds = min(times)
-            ref = embree_times[query]
+            ref = rounds[query]["embree"]
             rate = n / seconds / 1e6
-            # Round by round (interleaved_times): Embree's time over this method's.
+            # Round by round: Embree's time over this method's (brute force, timed apart
+            # on a subset, has none).
             paired = (statistics.median(e / t for e, t in zip(ref, times, strict=True))
-                      if len(times) == len(ref) else None)
+                      if method in rounds[query] else None)
             record["trace"].append({
                 "set": name, "query": query, "method": method, "rays": n,
                 "seconds": seconds, "seconds_all": list(times), "mrays_per_s": rate,
