@@ -1,6 +1,9 @@
 """The XLA:CPU flags jrt sets before JAX starts (jrt._xla)."""
 
 import os
+import resource
+import subprocess
+import sys
 
 import pytest
 
@@ -43,3 +46,65 @@ def test_bad_device_count_is_refused(monkeypatch):
     monkeypatch.setenv("JRT_CPU_DEVICES", "zero")
     with pytest.raises(ValueError, match="JRT_CPU_DEVICES must be a positive integer"):
         _xla._device_count()
+
+
+# A 48 MB block (above glibc's largest mmap threshold, 32 MB) allocated, written, freed
+# and allocated again: the page faults of the second round tell whether the process kept
+# the memory (jrt's malloc settings) or gave it back to the kernel (glibc's defaults).
+SECOND_ROUND_FAULTS = """
+import ctypes, resource
+import jrt
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+size = 48 << 20
+def touch():
+    block = libc.malloc(size)
+    ctypes.memset(block, 1, size)
+    libc.free(ctypes.c_void_p(block))
+touch()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+touch()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def _second_round_faults(tuning: str) -> int:
+    env = dict(os.environ, JRT_MALLOC_TUNING=tuning)
+    out = subprocess.run([sys.executable, "-c", SECOND_ROUND_FAULTS], env=env, check=True,
+                         capture_output=True, text=True)
+    return int(out.stdout.split()[-1])
+
+
+@pytest.mark.skipif(_xla._glibc() is None, reason="glibc's mallopt only")
+def test_malloc_tuning_keeps_large_blocks_for_the_next_call():
+    pages = (48 << 20) // resource.getpagesize()
+    # glibc's defaults: the block is an mmap given back at free, every page faults again.
+    assert _second_round_faults("0") > pages // 2
+    # jrt's settings: the block comes from the heap, which keeps it.
+    assert _second_round_faults("1") < pages // 20
+
+
+def test_malloc_tuning_sets_each_parameter_and_can_be_turned_off(monkeypatch):
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, param, value):
+            calls.append((param.value, value.value))
+            return 1
+
+    monkeypatch.delenv("JRT_MALLOC_TUNING", raising=False)
+    assert _xla.tune_malloc(FakeLibc())
+    assert dict(calls) == _xla.MALLOC_SETTINGS
+    calls.clear()
+    monkeypatch.setenv("JRT_MALLOC_TUNING", "0")
+    assert not _xla.tune_malloc(FakeLibc())
+    assert calls == []
+
+
+def test_malloc_tuning_reports_a_refused_setting(monkeypatch):
+    class RefusingLibc:
+        def mallopt(self, param, value):
+            return 0
+
+    monkeypatch.delenv("JRT_MALLOC_TUNING", raising=False)
+    assert not _xla.tune_malloc(RefusingLibc())
