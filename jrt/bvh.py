@@ -30,7 +30,8 @@ import jax.numpy as jnp
 from jax import lax
 
 from accel.bvh import EMPTY_SLOT, FRAME_WORDS, QUANT_MAX, reference_column
-from jrt.engine import Step, Traversal, box_interval, computed_once
+from jrt.engine import Step, Traversal, box_interval
+from jrt.fusion import computed_once
 
 #: Comparators (i, j) of optimal sorting networks by input count (Knuth, TAOCP 5.3.4).
 SORTING_NETWORKS = {

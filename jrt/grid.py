@@ -62,7 +62,8 @@ import functools
 import jax.numpy as jnp
 from jax import lax
 
-from jrt.engine import BOX_MARGIN, Ray, Step, Traversal, box_interval, computed_once
+from jrt.engine import BOX_MARGIN, Ray, Step, Traversal, box_interval
+from jrt.fusion import computed_once
 
 _SHRINK = 1.0 - BOX_MARGIN
 

@@ -9,6 +9,8 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Float, Int
 
+from jrt.fusion import computed_once
+
 
 class Hits(NamedTuple):
     """Closest hits of a batch of rays.
@@ -90,12 +92,17 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
         r = lax.dynamic_slice_in_dim(rays, start, WINNER_CHUNK)
         safe = jnp.maximum(chunk_rows, 0)
         tri = gather_triangles(triangles, safe)
-        t, u, v = fn(r[:, 0:3], r[:, 3:6], tri[:, 0], tri[:, 1], tri[:, 2])
+
+        def test(origin, direction, tri):
+            t, u, v = fn(origin, direction, tri[:, 0], tri[:, 1], tri[:, 2])
+            return t, lax.complex(u, v)
+
+        t, uv = computed_once(start >= 0, test, r[:, 0:3], r[:, 3:6], tri, always=True)
         hit = (chunk_rows >= 0) & (t < jnp.inf)
         zero = jnp.zeros_like(t)
         return Hits(t=jnp.where(hit, t, jnp.inf),
                     triangle=jnp.where(hit, triangle_ids[safe], -1),
-                    u=jnp.where(hit, u, zero), v=jnp.where(hit, v, zero))
+                    u=jnp.where(hit, jnp.real(uv), zero), v=jnp.where(hit, jnp.imag(uv), zero))
 
     def body(i, out):
         start = jnp.minimum(i * WINNER_CHUNK, n - WINNER_CHUNK)

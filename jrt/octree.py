@@ -59,7 +59,8 @@ import functools
 import jax.numpy as jnp
 from jax import lax
 
-from jrt.engine import BOX_MARGIN, Step, Traversal, box_interval, computed_once
+from jrt.engine import BOX_MARGIN, Step, Traversal, box_interval
+from jrt.fusion import computed_once
 
 _NO_KEY = jnp.iinfo(jnp.int32).max
 _KEY_MASK = 0x7FFFFFF8

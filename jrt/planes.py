@@ -46,7 +46,8 @@ from collections.abc import Callable
 import jax.numpy as jnp
 from jax import lax
 
-from jrt.engine import BOX_MARGIN, Step, Traversal, box_interval, computed_once
+from jrt.engine import BOX_MARGIN, Step, Traversal, box_interval
+from jrt.fusion import computed_once
 
 __all__ = ["BOX_MARGIN", "make"]
 
