@@ -487,7 +487,7 @@ def _flat_query(name: str, kernel: str):
     tmax``, which under ``jax.vmap`` runs once on the items' rays laid end to end.
 
     Why: vmapping the traversal engine itself turns its ``lax.cond`` s
-    (:func:`jrt.engine.computed_once`: skip work no lane needs, materialise values once)
+    (:func:`jrt.fusion.computed_once`: skip work no lane needs, materialise values once)
     into selects that compute both sides and recompute them in every reader: measured 10x
     slower than the unbatched engine on the glass camel. Rays are independent, so the
     batch is better served as one long list of rays: ``custom_vmap`` flattens the item

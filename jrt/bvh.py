@@ -111,7 +111,7 @@ def make(leaf_bits: int, width: int) -> Traversal:
         interior = live & (ref >= 0)
         leaf_here = live & (ref < 0)
         rows = arrays["nodes"][jnp.maximum(ref, 0)]
-        # Two boundaries (jrt.engine.computed_once): without the first, every output of
+        # Two boundaries (jrt.fusion.computed_once): without the first, every output of
         # the sort recomputed every box test (measured 2x slower steps at width 4).
         any_interior = jnp.any(interior)
         keys, refs = computed_once(any_interior, child_keys, ray, rows, best_t)

@@ -76,7 +76,7 @@ def make(crossings: Callable, leaf_bits: int) -> Traversal:
     def split(ray, rows, tmin, tmax, best_t, interior):
         """The children in visiting order, their intervals and whether each is entered.
 
-        Computed once per step (``jrt.engine.computed_once``): with the interval tests
+        Computed once per step (``jrt.fusion.computed_once``): with the interval tests
         inside the boundary as well as the plane's crossing, the step measured 1.2-1.3x
         faster on the camel than with the crossing alone inside.
         """
