@@ -1,7 +1,8 @@
 """Intel Embree (through ``embreex``) as a reference for hits and as the peer in benchmarks.
 
 embreex's ``run`` uses one thread per call; :meth:`EmbreePeer.closest_hit` splits a batch
-over ``threads`` Python threads (embreex releases the GIL while Embree traces).
+over ``threads`` Python threads (embreex releases the GIL while Embree traces), from a pool
+kept for the peer's life.
 """
 
 from __future__ import annotations
@@ -21,13 +22,18 @@ class EmbreePeer:
         self.scene = rtcore_scene.EmbreeScene(robust=robust)
         corners = np.ascontiguousarray(np.asarray(vertices, np.float32)[np.asarray(faces)])
         self._mesh = TriangleMesh(self.scene, corners)
+        self._pools: dict[int, ThreadPoolExecutor] = {}
 
     def _split(self, fn, n, threads):
         if threads <= 1 or n < 2 * threads:
             return [fn(0, n)]
         bounds = np.linspace(0, n, threads + 1).astype(int)
-        with ThreadPoolExecutor(threads) as pool:
-            return list(pool.map(lambda i: fn(bounds[i], bounds[i + 1]), range(threads)))
+        # One pool a thread count, kept: an application tracing batch after batch keeps its
+        # threads (as Embree's own task scheduler does) instead of starting new ones.
+        if threads not in self._pools:
+            self._pools[threads] = ThreadPoolExecutor(threads)
+        return list(self._pools[threads].map(lambda i: fn(bounds[i], bounds[i + 1]),
+                                             range(threads)))
 
     def _query(self, origins, directions, tmax, threads, **query):
         """embreex ``run`` over slices of the batch, one slice per thread."""
