@@ -4,13 +4,15 @@ Pure, jit-compiled JAX functions over arrays and pytrees. Acceleration structure
 built by the NumPy package :mod:`accel` and traversed here.
 """
 
-from jrt import _xla  # noqa: F401  (must run before JAX starts its backend)
+from jrt import _xla  # (must run before JAX starts its backend)
 from jrt.camera import Camera, camera_rays, frame_mesh
 from jrt.data import camel_path, data_dir
 from jrt.hits import Hits
 from jrt.kernels import KERNELS, moller_trumbore, plane_barycentric, watertight
 from jrt.mesh import Mesh, MeshError, load_mesh, mesh_from_arrays
 from jrt.trace import closest_hit, occluded
+
+tune_malloc = _xla.tune_malloc
 
 __all__ = [
     "KERNELS",
@@ -28,5 +30,6 @@ __all__ = [
     "moller_trumbore",
     "occluded",
     "plane_barycentric",
+    "tune_malloc",
     "watertight",
 ]

@@ -18,21 +18,27 @@ Computations that do not shard still run on device 0 as before.
 XLA's loops 16 floats wide instead of 8. The BVH traversal ran 5-8 % faster on this
 machine's AMD EPYC (Zen 4; interleaved A/B runs, 300k camel rays a set, 2 devices).
 
-**glibc malloc** (Linux with glibc only; ``JRT_MALLOC_TUNING=0`` leaves it alone): XLA:CPU
-allocates all the temporaries of an execution in one block per device (45 MB a device for
-1M camel rays on two devices). glibc serves a block above its mmap threshold (32 MB at
-most) with ``mmap`` and gives it back with ``munmap``, so every call touched fresh pages:
-some 23,000 page faults a call on 1M rays, 40-60 ms of system time. jrt therefore sets,
-with ``mallopt``: no ``mmap`` for large blocks (they come from the thread's arena), no
-trimming of a heap's top, and a top pad of 64 MB, without which a thread arena deletes a
-heap as soon as all of it is free (glibc's ``heap_trim`` keeps it only when the heap
-before it cannot take the pad). The process then keeps the memory of its largest call
-for the next one, as tcmalloc or jemalloc would. One arena for all threads would also do
-it, but XLA's two device threads then wait on its lock (hundreds of context switches a
-call, slower than the page faults). 1M camel rays a call, processes with and without
-alternating (4 pairs of 10 calls): 0 page faults a call against 23,000-24,500, and the
-median call 1.10-1.29x faster on camera rays, 0.98-1.25x on incoherent rays. Set before
-JAX starts its threads, as the flags are.
+**glibc malloc** (:func:`tune_malloc`, Linux with glibc only; opt-in: the ``jrt`` command
+and the benchmarks call it, a program calls ``jrt.tune_malloc()`` or sets
+``JRT_MALLOC_TUNING=1``; ``JRT_MALLOC_TUNING=0`` refuses it everywhere). XLA:CPU allocates
+all the temporaries of an execution in one block per device (45 MB a device for 1M camel
+rays on two devices). glibc serves a block above its mmap threshold (32 MB at most) with
+``mmap`` and gives it back with ``munmap``, so every call touches fresh pages: some 23,000
+page faults a call on 1M rays, 40-60 ms of system time. The tuning sets, with
+``mallopt``: no ``mmap`` for large blocks (they come from the thread's arena), no trimming
+of a heap's top, and a top pad of 64 MB, without which a thread arena deletes a heap as
+soon as all of it is free (glibc's ``heap_trim`` keeps it only when the heap before it
+cannot take the pad). The process then keeps the memory of its largest call for the next
+one, as tcmalloc or jemalloc would. One arena for all threads would also do it, but XLA's
+two device threads then wait on its lock (hundreds of context switches a call, slower
+than the page faults). 1M camel rays a call, processes with and without alternating (4
+pairs of 10 calls): 0 page faults a call against 23,000-24,500, and the median call
+1.10-1.29x faster on camera rays, 0.98-1.25x on incoherent rays.
+
+It is not applied on import because it changes ``malloc`` for the whole process: Embree
+called from threads started anew for every batch (embreex's outputs allocated in them)
+ran 10-25 % slower beside jrt with it (camel, 1M-ray batches); from threads that are kept,
+as the benchmarks' peer now does, it did not.
 """
 
 from __future__ import annotations
@@ -100,9 +106,11 @@ def _glibc():
 
 
 def tune_malloc(libc=None) -> bool:
-    """Applies :data:`MALLOC_SETTINGS` with glibc's ``mallopt``; whether all were taken.
+    """Has glibc keep freed memory for the next call (see this module's notes).
 
-    Skipped (False) with ``JRT_MALLOC_TUNING=0`` or without glibc.
+    Applies :data:`MALLOC_SETTINGS` with ``mallopt`` to the whole process, at any time
+    (they take effect from the next allocation). Returns whether all were taken: False
+    with ``JRT_MALLOC_TUNING=0`` or without glibc.
     """
     if os.environ.get("JRT_MALLOC_TUNING", "1").strip() == "0":
         return False
@@ -127,4 +135,5 @@ def apply() -> None:
 
 
 apply()
-tune_malloc()
+if os.environ.get("JRT_MALLOC_TUNING", "").strip() == "1":
+    tune_malloc()

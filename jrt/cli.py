@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import accel
-import jrt  # noqa: F401  (applies the XLA flags before JAX starts)
+import jrt  # (applies the XLA flags before JAX starts)
 from jrt.data import camel_path
 from jrt.kernels import DEFAULT_KERNEL, KERNELS
 from jrt.mesh import MeshError, load_mesh
@@ -306,6 +306,8 @@ def _delegate(module: str, argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # The command owns its process: keep freed memory for the next call (jrt._xla).
+    jrt.tune_malloc()
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     modules = {name: module for name, module, _ in DELEGATED}

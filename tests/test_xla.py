@@ -52,8 +52,12 @@ def test_bad_device_count_is_refused(monkeypatch):
 # and allocated again: the page faults of the second round tell whether the process kept
 # the memory (jrt's malloc settings) or gave it back to the kernel (glibc's defaults).
 SECOND_ROUND_FAULTS = """
-import ctypes, resource, threading
+import ctypes, resource, sys, threading
 import jrt
+if "--tune" in sys.argv:
+    jrt.tune_malloc()
+if "--benchmarks" in sys.argv:
+    import benchmarks  # the benchmarks tune it, as the jrt command does
 libc = ctypes.CDLL("libc.so.6")
 libc.malloc.restype = ctypes.c_void_p
 def touch(size):
@@ -74,21 +78,31 @@ twice()
 """
 
 
-def _second_round_faults(tuning: str) -> int:
-    env = dict(os.environ, JRT_MALLOC_TUNING=tuning)
-    out = subprocess.run([sys.executable, "-c", SECOND_ROUND_FAULTS], env=env, check=True,
-                         capture_output=True, text=True)
+def _second_round_faults(tuning: str | None, call: bool = False,
+                         benchmarks: bool = False) -> int:
+    env = dict(os.environ)
+    env.pop("JRT_MALLOC_TUNING", None)
+    if tuning is not None:
+        env["JRT_MALLOC_TUNING"] = tuning
+    command = ([sys.executable, "-c", SECOND_ROUND_FAULTS] + (["--tune"] if call else [])
+               + (["--benchmarks"] if benchmarks else []))
+    out = subprocess.run(command, env=env, check=True, capture_output=True, text=True)
     return max(int(count) for count in out.stdout.split())
 
 
 @pytest.mark.skipif(_xla._glibc() is None, reason="glibc's mallopt only")
 def test_malloc_tuning_keeps_large_blocks_for_the_next_call():
     pages = (48 << 20) // resource.getpagesize()
-    # glibc's defaults: the block is an mmap given back at free, every page faults again.
-    assert _second_round_faults("0") > pages // 2
-    # jrt's settings: the block comes from the thread's heap, which keeps it (in a thread
-    # arena and in the main one).
+    # glibc's defaults (importing jrt changes nothing): the block is an mmap given back at
+    # free, and every page faults again.
+    assert _second_round_faults(None) > pages // 2
+    # jrt.tune_malloc(), or JRT_MALLOC_TUNING=1 at import: the block comes from the
+    # thread's heap, which keeps it (in a thread arena and in the main one).
+    assert _second_round_faults(None, call=True) < pages // 20
     assert _second_round_faults("1") < pages // 20
+    assert _second_round_faults(None, benchmarks=True) < pages // 20
+    # JRT_MALLOC_TUNING=0 refuses it, even when asked.
+    assert _second_round_faults("0", call=True) > pages // 2
 
 
 def test_malloc_tuning_sets_each_parameter_and_can_be_turned_off(monkeypatch):
