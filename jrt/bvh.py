@@ -63,8 +63,8 @@ def node_columns(nodes, refs):
     stride of a row (XLA:CPU fuses the transpose into them); gathered with the lanes
     last, the gather writes each word's [L] vector once and the tests read them
     contiguously (paired 1M-ray calls on the camel, four runs of 12-16 rounds: incoherent
-    rays 1.03-1.11x, camera rays 1.00-1.06x). The reads of a row still come from one cache line.
-    Indices are clipped, as ``nodes[refs]`` clips them: a corrupt reference reads a node
+    rays 1.03-1.11x, camera rays 1.00-1.06x). A row's words still come from one cache
+    line. Indices are clipped, as ``nodes[refs]`` clips them: a corrupt reference reads a node
     of the array, never memory beyond it (the engine's iteration budget then stops it).
     """
     return lax.gather(

@@ -79,6 +79,12 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
     overlaps the one before it, whose rays it evaluates again to the same bits): padding
     copies of the ray arrays cost more than the kernel on the engine's interleaved
     shares. A chunk without a winning row (a patch of sky) skips the kernel.
+
+    XLA:CPU computes each output of a fusion in a kernel of its own, and copied the whole
+    triangle test into each of t, u, v and the face (watertight on 500k rays: 46.6 ns a
+    test for t, u, v against 6.3 for t alone). So u and v leave the test as one complex64
+    and the test's outputs are materialised once (``computed_once``): two copies instead
+    of four, the same bits, 7-16 % off this pass.
     """
     n = rows.shape[0]
     if n < WINNER_CHUNK:  # one padded chunk, so that the kernel keeps its compiled shape
