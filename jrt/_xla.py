@@ -1,4 +1,5 @@
-"""XLA:CPU settings jrt needs, applied before JAX starts its CPU backend.
+"""Process settings for XLA:CPU: the flags jrt needs, applied before JAX starts its CPU
+backend, and an opt-in tuning of glibc's malloc for XLA's per-call temporaries.
 
 ``--xla_cpu_use_fusion_emitters=false``: XLA:CPU's newer fusion emitters compile the
 triangle-test fusions inside ``lax.scan``/``while_loop`` bodies to code 4-6x slower than
