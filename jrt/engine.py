@@ -462,6 +462,8 @@ def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel:
                      jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.float32))
         return empty, (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.int32(0)
     devs = tuple(devices) if devices is not None else tuple(cpu_devices())
+    if not devs:
+        raise ValueError("devices must name at least one device (None: all local devices)")
     if lanes is None:
         lanes = default_lanes(devs)
     return _traverse(arrays, origins, directions, tmax, traversal=traversal, kernel=kernel,

@@ -36,9 +36,10 @@ import accel
 import accel.bvh as accel_bvh
 import jrt
 from accel.structure import Structure
+from jrt import engine
 from jrt.engine import StackOverflowError, TraversalError, iteration_budget
 from jrt.hits import TIE_RELATIVE
-from jrt.trace import as_numpy
+from jrt.trace import as_numpy, traversal_of
 
 KERNELS = list(jrt.KERNELS)
 
@@ -721,3 +722,19 @@ def test_jax_arrays_in_and_lanes_beyond_the_rays():
     hits = as_numpy(jrt.closest_hit(tiny(), o, d, lanes=4096))
     np.testing.assert_array_equal(hits["triangle"], [0, 0, -1])
     np.testing.assert_array_equal(hits["t"], np.float32([1, 1, np.inf]))
+
+
+def test_engine_refuses_an_empty_device_list():
+    structure = tiny()
+    o, d = jnp.asarray(np.float32([[0.5, 0.5, 0]])), jnp.asarray(np.float32([[0, 0, 1]]))
+    with pytest.raises(ValueError, match="at least one device"):
+        engine.traverse(traversal_of(structure), structure.arrays, o, d,
+                        jnp.full(1, jnp.inf, jnp.float32), kernel="watertight",
+                        any_hit=False, devices=())
+    # One named device is a valid choice, and answers as all of them do.
+    hits, _, status = engine.traverse(
+        traversal_of(structure), structure.arrays, o, d,
+        jnp.full(1, jnp.inf, jnp.float32), kernel="watertight", any_hit=False,
+        devices=jax.local_devices()[:1])
+    assert int(status) == 0
+    assert int(hits.triangle[0]) == int(jrt.closest_hit(structure, o, d).triangle[0]) == 0
