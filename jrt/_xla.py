@@ -118,7 +118,7 @@ def tune_malloc(libc=None) -> bool:
     libc = libc if libc is not None else _glibc()
     if libc is None:
         return False
-    # mallopt returns 1 on success, 0 on error.
+    # mallopt returns 1 on success, 0 on error; a list, so that every setting is tried.
     return all([libc.mallopt(ctypes.c_int(param), ctypes.c_int(value)) == 1
                 for param, value in MALLOC_SETTINGS.items()])
 

@@ -92,7 +92,8 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
         return jax.tree.map(lambda a: a[:n], winner_hits(
             fn, jnp.pad(rays, ((0, pad), (0, 0))), triangles, triangle_ids,
             jnp.pad(rows, (0, pad), constant_values=-1)))
-    empty = triangles.shape[0] == 0
+    if triangles.shape[0] == 0:  # no triangle: every ray misses, no chunk to evaluate
+        return _misses(n)
 
     def evaluate(start, chunk_rows):
         r = lax.dynamic_slice_in_dim(rays, start, WINNER_CHUNK)
@@ -113,11 +114,8 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
     def body(i, out):
         start = jnp.minimum(i * WINNER_CHUNK, n - WINNER_CHUNK)
         chunk_rows = lax.dynamic_slice_in_dim(rows, start, WINNER_CHUNK)
-        if empty:
-            hits = _misses(WINNER_CHUNK)
-        else:
-            hits = lax.cond(jnp.any(chunk_rows >= 0), evaluate,
-                            lambda *_: _misses(WINNER_CHUNK), start, chunk_rows)
+        hits = lax.cond(jnp.any(chunk_rows >= 0), evaluate,
+                        lambda *_: _misses(WINNER_CHUNK), start, chunk_rows)
         return jax.tree.map(lambda a, b: lax.dynamic_update_slice_in_dim(a, b, start, 0),
                             out, hits)
 
