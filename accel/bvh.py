@@ -170,16 +170,35 @@ def _sah_splits(lo, hi, cent, seg, counts, cmin, cmax, node_area, bins, ct, ci):
     # Sweep: left = bins 0..i, right = bins i+1..; empty sides have inverted boxes.
     nl = np.cumsum(n, axis=1)[:, :-1]
     nr = counts[None, None, :] - nl
-    al = _half_area_t(np.minimum.accumulate(blo, axis=2)[:, :, :-1],
-                      np.maximum.accumulate(bhi, axis=2)[:, :, :-1])
-    ar = _half_area_t(np.minimum.accumulate(blo[:, :, ::-1], axis=2)[:, :, ::-1][:, :, 1:],
-                      np.maximum.accumulate(bhi[:, :, ::-1], axis=2)[:, :, ::-1][:, :, 1:])
+    al = _half_area_t(_sweep(np.minimum, blo)[:, :, :-1], _sweep(np.maximum, bhi)[:, :, :-1])
+    ar = _half_area_t(_sweep(np.minimum, blo, reverse=True)[:, :, 1:],
+                      _sweep(np.maximum, bhi, reverse=True)[:, :, 1:])
     with np.errstate(invalid="ignore", divide="ignore"):
         cost = ct + ci * (al * nl + ar * nr) / node_area[None, None, :]
     cost[(nl == 0) | (nr == 0) | ~np.isfinite(cost)] = np.inf
     flat = cost.reshape(3 * (bins - 1), k)
     best = np.argmin(flat, axis=0)
     return flat[best, np.arange(k)], best // (bins - 1), best % (bins - 1), b
+
+
+def _sweep(op: np.ufunc, a: np.ndarray, reverse: bool = False) -> np.ndarray:
+    """Running ``op`` (minimum or maximum) of ``a`` [c, axis, bin, segment] along the bins,
+    from the first bin (or from the last, ``reverse``).
+
+    Same values as ``op.accumulate(a, axis=2)``, computed one bin at a time over
+    contiguous [c, axis, segment] slices: NumPy's accumulate along a middle axis ran 14x
+    slower (19 against 1.3 ms on [3, 3, 16, 20000] float32), a third of the camel's build.
+    """
+    out = np.empty_like(a)
+    order = range(a.shape[2] - 1, -1, -1) if reverse else range(a.shape[2])
+    previous = None
+    for i in order:
+        if previous is None:
+            out[:, :, i] = a[:, :, i]
+        else:
+            op(out[:, :, previous], a[:, :, i], out=out[:, :, i])
+        previous = i
+    return out
 
 
 def _half_area_t(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
