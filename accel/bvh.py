@@ -189,15 +189,10 @@ def _sweep(op: np.ufunc, a: np.ndarray, reverse: bool = False) -> np.ndarray:
     contiguous [c, axis, segment] slices: NumPy's accumulate along a middle axis ran 14x
     slower (19 against 1.3 ms on [3, 3, 16, 20000] float32), a third of the camel's build.
     """
-    out = np.empty_like(a)
+    out = a.copy()
     order = range(a.shape[2] - 1, -1, -1) if reverse else range(a.shape[2])
-    previous = None
-    for i in order:
-        if previous is None:
-            out[:, :, i] = a[:, :, i]
-        else:
-            op(out[:, :, previous], a[:, :, i], out=out[:, :, i])
-        previous = i
+    for previous, i in zip(order, order[1:]):
+        op(out[:, :, previous], out[:, :, i], out=out[:, :, i])
     return out
 
 

@@ -569,3 +569,18 @@ def test_non_finite_vertices_are_refused_by_every_builder(name, value):
     vertices[4, 1] = value
     with pytest.raises(ValueError, match="vertex 4 .*allowed: finite"):
         accel.build(name, vertices, faces)
+
+
+@pytest.mark.parametrize("op", [np.minimum, np.maximum])
+@pytest.mark.parametrize("reverse", [False, True])
+def test_sah_sweep_matches_numpy_accumulate(op, reverse):
+    """The bin-by-bin sweep of the SAH gives NumPy's accumulate along the bins, from either
+    end, with infinities (empty bins) and ties."""
+    from accel.bvh import _sweep
+
+    rng = np.random.default_rng(7)
+    a = rng.integers(-3, 4, (3, 3, 16, 41)).astype(np.float32)
+    a[rng.random(a.shape) < 0.2] = np.inf if op is np.minimum else -np.inf
+    expected = (op.accumulate(a[:, :, ::-1], axis=2)[:, :, ::-1] if reverse
+                else op.accumulate(a, axis=2))
+    assert np.array_equal(_sweep(op, a, reverse=reverse), expected)
