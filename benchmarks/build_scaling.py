@@ -21,7 +21,7 @@ import numpy as np
 import accel
 import jrt
 from benchmarks.common import write_record
-from benchmarks.structures import ENGINE_STRUCTURES, _structures
+from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 
 
 def subdivide(vertices, faces, levels: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -67,7 +67,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--levels", type=int, default=2, help="subdivision levels (default 2)")
     parser.add_argument("--builds", type=int, default=3)
-    parser.add_argument("--structures", type=_structures, default=list(ENGINE_STRUCTURES),
+    parser.add_argument("--structures", type=structure_names, default=list(ENGINE_STRUCTURES),
                         help=f"comma-separated, from {','.join(ENGINE_STRUCTURES)}")
     parser.add_argument("--json", default="out/build_scaling.json")
     args = parser.parse_args(argv)

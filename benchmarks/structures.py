@@ -36,7 +36,8 @@ from jrt.trace import as_numpy
 ENGINE_STRUCTURES = tuple(n for n in accel.NAMES if n != "brute")
 
 
-def _structures(value: str) -> list[str]:
+def structure_names(value: str) -> list[str]:
+    """``--structures`` of the benchmarks: comma-separated names, each an engine structure."""
     names = [v.strip() for v in value.split(",") if v.strip()]
     bad = [n for n in names if n not in ENGINE_STRUCTURES]
     if bad or not names:
@@ -47,7 +48,7 @@ def _structures(value: str) -> list[str]:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--structures", type=_structures, default=list(ENGINE_STRUCTURES),
+    parser.add_argument("--structures", type=structure_names, default=list(ENGINE_STRUCTURES),
                         help=f"comma-separated, from {','.join(ENGINE_STRUCTURES)}")
     parser.add_argument("--rays", type=int, default=1_000_000, help="rays per set")
     parser.add_argument("--brute-rays", type=int, default=4096)

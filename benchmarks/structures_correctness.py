@@ -20,7 +20,7 @@ import numpy as np
 import accel
 import jrt
 from benchmarks.common import write_record
-from benchmarks.structures import ENGINE_STRUCTURES, _structures
+from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
@@ -28,7 +28,7 @@ from jrt.trace import as_numpy
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     others = [n for n in ENGINE_STRUCTURES if n != "bvh"]
-    parser.add_argument("--structures", type=_structures, default=others,
+    parser.add_argument("--structures", type=structure_names, default=others,
                         help=f"comma-separated, from {','.join(others)}")
     parser.add_argument("--rays", type=int, default=1_000_000)
     parser.add_argument("--json", default="out/structures_correctness.json")

@@ -29,7 +29,7 @@ import argparse
 import time
 from pathlib import Path
 
-from benchmarks.structures import ENGINE_STRUCTURES, _structures
+from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 
 #: Render sizes (width, height) of the built-in scenes, full and --quick.
 RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--skip", default="",
                         help="comma-separated steps to skip, from bench, stability, "
                         "work_precision, renders (their JSON, if present, is reused)")
-    parser.add_argument("--structures", type=_structures, default=None,
+    parser.add_argument("--structures", type=structure_names, default=None,
                         help="comma-separated acceleration structures for the benchmark "
                         f"suite, from {', '.join(ENGINE_STRUCTURES)} (default all; brute "
                         "force always runs)")

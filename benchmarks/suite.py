@@ -66,7 +66,7 @@ import jrt.data
 import jrt.raysets
 from benchmarks.build_scaling import build_times, fit_exponent, ns_per_n_log2_n, subdivide
 from benchmarks.common import jsonable, rates, summary, time_calls, write_record
-from benchmarks.structures import ENGINE_STRUCTURES, _structures
+from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -126,7 +126,7 @@ def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
     parser.add_argument("--quick", action="store_true",
                         help="CI's smoke test: the 19k camel, 64x64 rays a set, 2 repeats, "
                              "two scaling meshes")
-    parser.add_argument("--structures", type=_structures, default=list(ENGINE_STRUCTURES),
+    parser.add_argument("--structures", type=structure_names, default=list(ENGINE_STRUCTURES),
                         help=f"comma-separated, from {','.join(ENGINE_STRUCTURES)} "
                              "(default all)")
     parser.add_argument("--device", choices=tuple(DEVICE_PLATFORMS), default=None,
