@@ -64,7 +64,7 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
     """The hit record of each ray's winning row (-1: a miss), evaluated in one place.
 
     ``rays`` [n, C] holds each ray's origin in columns 0-2 and its direction in 3-5 (the
-    engine's packed rows, C = 10, or origins and directions side by side, C = 6).
+    engine's packed rows, C = 7, or origins and directions side by side, C = 6).
 
     XLA fuses the kernel differently inside each traversal loop, and the compiled code
     may round one ulp differently (fused multiply-adds); evaluating t, u, v of the winner
