@@ -215,8 +215,9 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     """All rays of ``rays`` [n, 7] (see :func:`_pack_rays`) through one device's lanes.
 
     One iteration: refill the lanes that finished (write their winner, take the next
-    rays), gather every lane's ray, start the refilled lanes, one traversal step for
-    lanes whose leaf is done, one triangle test for lanes with leaf rows left. The loop
+    rays), gather every lane's ray, start the refilled lanes, one traversal step (for a
+    lane with leaf rows left, only if the step names no leaf), one triangle test for
+    lanes with leaf rows left. The loop
     carries as few arrays as it can: XLA:CPU runs each elementwise update of a carried
     array as its own pass over the lanes, and those passes, not the arithmetic, bound
     the iteration.
