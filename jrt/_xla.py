@@ -19,6 +19,18 @@ Computations that do not shard still run on device 0 as before.
 XLA's loops 16 floats wide instead of 8. The BVH traversal ran 5-8 % faster on this
 machine's AMD EPYC (Zen 4; interleaved A/B runs, 300k camel rays a set, 2 devices).
 
+``--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=2^40``: XLA:CPU's
+thunk runtime runs a program as a sequence of thunks, one for every fusion, gather and
+scatter, and a ``while_loop`` body as such a sequence on every iteration; its
+``SmallWhileLoopHoistingPass`` compiles a loop whose buffers are below this many bytes
+(1024 by default) into one function instead. jrt raises the threshold so that every
+loop is compiled whole: the traversal engine's loop runs some 40 thunks an iteration,
+which bounded its speed at a few thousand lanes. On the camel (1M rays a set, 2 devices,
+interleaved processes) the flag alone gave 5-7 % on the BVH and every other structure,
+brute force's triangle loop ran 1.6-1.9x faster, and the engine's best lane count fell
+from 2048 to 512 (see ``jrt.engine.DEFAULT_LANES``). A user's own
+``--xla_backend_extra_options`` is left as it is.
+
 **glibc malloc** (:func:`tune_malloc`, Linux with glibc only; opt-in: the ``jrt`` command
 and the benchmarks call it, a program calls ``jrt.tune_malloc()`` or sets
 ``JRT_MALLOC_TUNING=1``; ``JRT_MALLOC_TUNING=0`` refuses it everywhere). XLA:CPU allocates
@@ -123,9 +135,15 @@ def tune_malloc(libc=None) -> bool:
                 for param, value in MALLOC_SETTINGS.items()])
 
 
+#: Buffer bytes under which XLA:CPU compiles a while loop into one function (2^40: all).
+SMALL_WHILE_LOOP_BYTES = 2**40
+
+
 def apply() -> None:
     current = os.environ.get("XLA_FLAGS", "")
-    flags = (*_FLAGS, f"--xla_force_host_platform_device_count={_device_count()}")
+    flags = (*_FLAGS, f"--xla_force_host_platform_device_count={_device_count()}",
+             "--xla_backend_extra_options="
+             f"xla_cpu_small_while_loop_byte_threshold={SMALL_WHILE_LOOP_BYTES}")
     if _has_avx512():
         flags += ("--xla_cpu_prefer_vector_width=512",)
     for flag in flags:

@@ -5,6 +5,7 @@ import resource
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from jrt import _xla
@@ -40,6 +41,50 @@ def test_apply_keeps_a_flag_the_user_set(monkeypatch):
     flags = os.environ["XLA_FLAGS"].split()
     assert "--xla_cpu_prefer_vector_width=256" in flags
     assert "--xla_cpu_prefer_vector_width=512" not in flags
+
+
+def test_apply_compiles_every_while_loop_whole(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "")
+    _xla.apply()
+    flags = os.environ["XLA_FLAGS"].split()
+    assert ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
+            f"{_xla.SMALL_WHILE_LOOP_BYTES}") in flags
+
+
+def test_apply_keeps_the_users_backend_extra_options(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_extra_options=xla_cpu_fold_all_constants")
+    _xla.apply()
+    flags = [f for f in os.environ["XLA_FLAGS"].split() if "backend_extra" in f]
+    assert flags == ["--xla_backend_extra_options=xla_cpu_fold_all_constants"]
+
+
+def test_the_traversal_loop_is_compiled_as_one_call():
+    """The flag reaches XLA: the engine's loop is hoisted into a small call (one function)."""
+    import jax
+    import jax.numpy as jnp
+
+    import accel
+    from jrt import bvh, engine
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    s = accel.build("bvh", v, np.array([[0, 1, 2]]))
+    # 256 rays on 64 lanes: the loop's buffers are far above XLA's default threshold.
+    o = jnp.zeros((256, 3), jnp.float32)
+    d = jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]]), (256, 1))
+    text = engine._traverse.lower(
+        s.arrays, o, d, jnp.full(256, jnp.inf), traversal=bvh.traversal(s), kernel="watertight",
+        any_hit=False, lanes=64, stack_size=8, counters=False,
+        devices=tuple(jax.local_devices()[:1])).compile().as_text()
+    # Every loop (the engine's, the winners' pass, the scatters XLA expands into loops) is
+    # hoisted into a computation of its own, called as one function; with XLA's default
+    # threshold the engine's loop and the winners' stay in the entry computation.
+    computation, holders = None, set()
+    for line in text.splitlines():
+        if line[:1] not in ("", " ") and line.rstrip().endswith("{"):
+            computation = line.split()[0]
+        if " while(" in line:
+            holders.add(computation)
+    assert holders and all(name.endswith("_computation") for name in holders), holders
 
 
 def test_bad_device_count_is_refused(monkeypatch):
