@@ -65,11 +65,15 @@ from jrt.fusion import computed_once
 from jrt.hits import Hits, gather_triangles, prefer, tie_window, winner_hits
 from jrt.kernels import get_kernel
 
-#: Persistent lanes per device, by backend. CPU: a few thousand keep a lane's state in
-#: cache (measured on the camel: 1024 and 4096 both slower than 2048). GPU: tens of
-#: thousands fill the device (an H100 measured 32k-64k best, 0.34-0.35x Embree's 16
-#: threads on camera rays at 64k against 0.17x at 1M and far less at 2048).
-DEFAULT_LANES = {"cpu": 2048, "gpu": 65536}
+#: Persistent lanes per device, by backend. CPU: a few hundred, with every loop compiled
+#: as one function (``jrt._xla``'s small-loop threshold): 1M camel rays a set on 2
+#: devices, paired rounds against 2048 lanes, gave 1.08-1.14x (camera rays) and
+#: 1.11-1.16x (incoherent rays) from 384 to 768 lanes, and less at 256 and from 1024 up.
+#: (Run as a sequence of thunks, the loop paid a fixed cost per operation and iteration,
+#: and 2048 lanes were best.) GPU: tens of thousands fill the device (an H100 measured
+#: 32k-64k best, 0.34-0.35x Embree's 16 threads on camera rays at 64k against 0.17x at
+#: 1M and far less at 2048).
+DEFAULT_LANES = {"cpu": 512, "gpu": 65536}
 FALLBACK_LANES = 2048
 
 DEFAULT_STACK_SIZE = 64

@@ -171,7 +171,7 @@ def closest_hit(
         counters: also return :class:`jrt.Counters` (per-ray steps, triangle tests,
             leaves); a static option: without it the compiled traversal counts nothing.
         lanes, stack_size: the engine's persistent lanes per device (``None``: the
-            backend's default, ``jrt.engine.default_lanes``: 2048 on CPU, 65536 on GPU)
+            backend's default, ``jrt.engine.default_lanes``: 512 on CPU, 65536 on GPU)
             and per-lane stack entries (both ignored by brute force). A stack overflow
             raises :class:`StackOverflowError`;
             a traversal that cannot end (arrays inconsistent with the structure's kind)
