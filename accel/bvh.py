@@ -191,7 +191,7 @@ def _sweep(op: np.ufunc, a: np.ndarray, reverse: bool = False) -> np.ndarray:
     """
     out = a.copy()
     order = range(a.shape[2] - 1, -1, -1) if reverse else range(a.shape[2])
-    for previous, i in zip(order, order[1:]):
+    for previous, i in zip(order, order[1:], strict=False):
         op(out[:, :, previous], out[:, :, i], out=out[:, :, i])
     return out
 

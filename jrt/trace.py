@@ -36,7 +36,10 @@ def traversal_of(structure: Structure) -> engine.Traversal:
     return importlib.import_module(f"jrt.{structure.kind}").traversal(structure)
 
 
-def _check_rays(origins, directions, tmax):
+def _check_rays(origins, directions, tmax, values: bool = True):
+    """The rays as float32 arrays of consistent shapes (else a ValueError); their values
+    too with ``values`` (the engine's structures check them in their own pass, see
+    :func:`_raise_on_status`)."""
     origins = jnp.asarray(origins, jnp.float32)
     directions = jnp.asarray(directions, jnp.float32)
     if origins.ndim != 2 or origins.shape[1] != 3:
@@ -51,7 +54,8 @@ def _check_rays(origins, directions, tmax):
         tmax = jnp.full((n,), jnp.inf, jnp.float32)
     else:
         tmax = jnp.broadcast_to(jnp.asarray(tmax, jnp.float32), (n,))
-    _check_ray_values(origins, directions, tmax)
+    if values:
+        _check_ray_values(origins, directions, tmax)
     return origins, directions, tmax
 
 
@@ -75,12 +79,7 @@ def _check_ray_values(origins, directions, tmax):
                 f"such rays of {len(bad)}); allowed: {allowed}")
 
 
-def _ray_problems(xp, o, d, t):
-    """The ray checks, (name, bad [n], what is allowed) each, in NumPy or jax.numpy."""
-    return (("origins", ~xp.isfinite(o).all(axis=1), "finite"),
-            ("directions", ~xp.isfinite(d).all(axis=1), "finite"),
-            ("directions", ~(xp.abs(d) > 0).any(axis=1), "non-zero"),
-            ("tmax", xp.isnan(t), "a number (inf for no limit)"))
+_ray_problems = engine.ray_problems
 
 
 @jax.jit
@@ -116,12 +115,18 @@ def _check_options(lanes, stack_size):
         raise ValueError(f"stack_size must be a positive integer, got {stack_size!r}")
 
 
-def _raise_on_status(status, stack_size):
-    """Raise what the engine's status word reports (inside a caller's jit: at run time)."""
+def _raise_on_status(status, stack_size, rays):
+    """Raise what the engine's status word reports (inside a caller's jit: at run time).
+
+    Bad rays (:data:`jrt.engine.STATUS_BAD_RAYS`) are named from ``rays`` (origins,
+    directions, tmax) outside a jit; inside one they trace as misses, as documented."""
     if isinstance(status, jax.core.Tracer):
         jax.debug.callback(_status_callback, status, stack_size=stack_size)
-    else:
-        _status_callback(status, stack_size=stack_size)
+        return
+    status = int(status)
+    if status & engine.STATUS_BAD_RAYS:
+        _check_ray_values(*rays)
+    _status_callback(status, stack_size=stack_size)
 
 
 def _status_callback(status, *, stack_size):
@@ -144,7 +149,7 @@ def _engine_query(structure, origins, directions, tmax, kernel, any_hit, counter
     hits, count, status = engine.traverse(
         traversal_of(structure), structure.arrays, origins, directions, tmax, kernel=kernel,
         any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters)
-    _raise_on_status(status, stack_size)
+    _raise_on_status(status, stack_size, (origins, directions, tmax))
     if count is not None:
         count = Counters(steps=count[:, 0], tests=count[:, 1], leaves=count[:, 2])
     return hits, count
@@ -183,7 +188,8 @@ def closest_hit(
     """
     _check_structure(structure)
     get_kernel(kernel)
-    origins, directions, tmax = _check_rays(origins, directions, tmax)
+    origins, directions, tmax = _check_rays(origins, directions, tmax,
+                                            values=structure.kind == "brute")
     if structure.kind != "brute":
         hits, count = _engine_query(structure, origins, directions, tmax, kernel, False,
                                     counters, lanes, stack_size)
@@ -214,7 +220,8 @@ def occluded(
     """
     _check_structure(structure)
     get_kernel(kernel)
-    origins, directions, tmax = _check_rays(origins, directions, tmax)
+    origins, directions, tmax = _check_rays(origins, directions, tmax,
+                                            values=structure.kind == "brute")
     if structure.kind != "brute":
         hits, count = _engine_query(structure, origins, directions, tmax, kernel, True,
                                     counters, lanes, stack_size)

@@ -129,7 +129,9 @@ def check_counters(count: jrt.engine.Counters, hit: np.ndarray, structure):
     for a in (steps, tests, leaves):
         assert a.dtype == np.int32 and a.shape == hit.shape
         assert (a >= 0).all()
-    assert (steps >= 1).all(), "every ray takes at least the root's step"
+    # The root's step is taken before the loop (engine.Traversal.entry), so a ray that
+    # enters none of the root's children counts no step; a hit needs one (its leaf's).
+    assert (steps[hit] >= 1).all(), "a hit without a step"
     assert (tests[hit] >= 1).all() and (leaves[hit] >= 1).all(), "a hit without a test"
     assert (leaves <= tests).all(), "a leaf visited without a triangle test"
     # Each node is visited, and each triangle tested, at most once per ray.
@@ -139,10 +141,27 @@ def check_counters(count: jrt.engine.Counters, hit: np.ndarray, structure):
     return steps, tests, leaves
 
 
-def test_rays_outside_the_mesh_box_take_no_step(camel, camel_bvh, camel_rays, brute_hits):
-    """The engine answers rays that miss the mesh's box before the loop: they count no
-    work and miss; every ray through the box is traced (at least the root's step), and
-    the hits stay brute force's. Rays whose tmax ends before the box are not traced."""
+def root_children_entered(structure, origins, directions):
+    """int [R] each: how many of the root's children each ray enters by a clear margin,
+    and how many it comes near (within 1e-3 of the mesh's size); float64 slabs on the
+    decoded boxes (accel.bvh.child_boxes), no engine code."""
+    width = structure.layout_value("width")
+    lo, hi = accel_bvh.child_boxes(structure["nodes"][:1], width)
+    refs = accel_bvh.child_references(structure["nodes"][:1], width)[0]
+    lo, hi = lo[0][refs != accel_bvh.EMPTY_SLOT], hi[0][refs != accel_bvh.EMPTY_SLOT]
+    pad = 1e-3 * float(np.max(hi.max(0) - lo.min(0)))
+    o, d = origins[:, None], directions[:, None]
+    near, far = slab_interval(o, d, lo + pad, hi - pad)
+    wide_near, wide_far = slab_interval(o, d, lo - pad, hi + pad)
+    return (near <= far).sum(axis=1), (wide_near <= wide_far).sum(axis=1)
+
+
+def test_the_root_step_is_taken_before_the_loop(camel, camel_bvh, camel_rays, brute_hits):
+    """The engine answers rays that miss the mesh's box before the loop, and the BVH takes
+    its root's step for every ray there (engine.Traversal.entry): a ray that enters none
+    of the root's children counts no work and misses, one that enters exactly one starts
+    in it, one step fewer than through the root; the hits stay brute force's. Rays whose
+    tmax ends before the box are not traced."""
     origins, directions = camel_rays["camera"]
     want = brute_hits("watertight", "camera")
     hits, count = jrt.closest_hit(camel_bvh, origins, directions, counters=True)
@@ -153,14 +172,38 @@ def test_rays_outside_the_mesh_box_take_no_step(camel, camel_bvh, camel_rays, br
     through = near <= far
     # A camera around the camel: some rays miss its box, many pass through it.
     assert 0.2 < through.mean() < 0.8
-    assert (steps[through] >= 1).all()
-    # Untraced rays miss the box (the engine's box is widened by 2^-16, so a ray that
-    # grazes the exact box may be traced: the converse need not hold).
+    entered, near_by = root_children_entered(camel_bvh, origins, directions)
+    none_near = near_by == 0
+    # Rays through the box that miss every root child: untraced too.
+    assert (through & none_near).sum() > 0.05 * len(steps)
     untraced = steps == 0
-    assert untraced.sum() > 0.2 * len(steps)
-    assert not through[untraced].any()
+    assert untraced[none_near].all()
+    # Untraced rays come near no root child (the engine's boxes are widened by 2^-16,
+    # so a ray that grazes one may be traced: the converse need not hold).
+    assert not (entered[untraced] > 0).any()
     assert not (np.asarray(hits.triangle)[untraced] >= 0).any()
     assert (np.asarray(count.tests)[untraced] == 0).all()
+    # Against the same traversal started at the root for every ray (its root step taken
+    # in the loop): the same hits and tests; one step fewer for a ray that clearly
+    # enters exactly one root child (the camel's are interior nodes), none fewer for one
+    # that enters two or more, and the root's step alone for one that enters none.
+    assert (accel_bvh.child_references(camel_bvh["nodes"][:1], 4) > 0).all()
+    from_root = traversal_of(camel_bvh)._replace(
+        entry=None, start=lambda arrays, ray: (jnp.zeros(ray.tmax.shape, jnp.int32),
+                                               jnp.full(ray.tmax.shape, -jnp.inf)))
+    o, d = jnp.asarray(origins), jnp.asarray(directions)
+    root_hits, root_count, status = engine.traverse(
+        from_root, camel_bvh.arrays, o, d, jnp.full(len(o), jnp.inf, jnp.float32),
+        kernel="watertight", any_hit=False, counters=True)
+    assert int(status) == 0
+    assert_same_hits(as_numpy(root_hits), want, origins, directions, "from the root")
+    root_steps, root_tests = np.asarray(root_count[:, 0]), np.asarray(root_count[:, 1])
+    np.testing.assert_array_equal(root_tests, np.asarray(count.tests))
+    one, several = (entered == 1) & (near_by == 1), entered >= 2
+    assert one.sum() > 0.1 * len(steps) and several.sum() > 0.02 * len(steps)
+    np.testing.assert_array_equal(root_steps[one] - steps[one], 1)
+    np.testing.assert_array_equal(root_steps[several], steps[several])
+    np.testing.assert_array_equal(root_steps[none_near & through], 1)
 
     # The same rays, ending halfway to the box: nothing is traced, nothing occludes.
     inside = through & (near > 0)
@@ -601,6 +644,29 @@ TINY_MESH = (np.float32([[-1, -1, 1], [3, -1, 1], [-1, 3, 1]]), np.int32([[0, 1,
 def tiny(kind="bvh"):
     """One triangle in z = 1 covering (0.5, 0.5)."""
     return accel.build(kind, *TINY_MESH)
+
+
+@pytest.mark.parametrize("kind", ["bvh", "kdtree", "octree", "bsp", "grid", "brute"])
+def test_bad_rays_are_named_by_every_structure(kind):
+    """The engine checks the rays in its own pass (engine.STATUS_BAD_RAYS) and the public
+    functions name the first bad one, as brute force's separate check does: a NaN or
+    infinite origin or direction, a zero direction, a NaN tmax; one bad ray among good
+    ones, on either device's share (odd and even indices)."""
+    structure = tiny(kind)
+    good_o, good_d = np.float32([[0.5, 0.5, 0]] * 5), np.float32([[0, 0, 1]] * 5)
+    cases = [("origins", 3, "o", [np.nan, 0.5, 0]), ("origins", 2, "o", [0.5, np.inf, 0]),
+             ("directions", 1, "d", [0, -np.inf, 1]), ("directions", 4, "d", [0, 0, 0]),
+             ("tmax", 0, "t", np.nan)]
+    for name, index, field, value in cases:
+        o, d, t = good_o.copy(), good_d.copy(), np.full(5, np.inf, np.float32)
+        {"o": o, "d": d, "t": t}[field][index] = value
+        for query in (jrt.closest_hit, jrt.occluded):
+            args = (structure, o, d) + ((t,) if query is jrt.occluded else ())
+            kwargs = {} if query is jrt.occluded else {"tmax": t}
+            with pytest.raises(ValueError, match=f"{name} of ray {index} is"):
+                query(*args, **kwargs)
+    # The good rays alone answer.
+    np.testing.assert_array_equal(np.asarray(jrt.closest_hit(structure, good_o, good_d).t), 1)
 
 
 def test_zero_rays_give_empty_arrays():
