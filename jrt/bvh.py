@@ -179,7 +179,7 @@ def make(leaf_bits: int, width: int) -> Traversal:
         camel, 63 % of the camera rays enter none (52 % miss the mesh's box) and 27 %
         exactly one; 10 % and 48 % of the incoherent rays. (Going on to the root's
         children's rows by selects, a second level, made the pass 8 ms a 1M-ray call
-        slower for 0.2-0.35 steps a ray fewer: 0.98-1.05x in paired calls.)"""
+        slower for 0.2-0.35 steps a ray fewer: 0.96-1.02x in paired calls.)"""
         root = jnp.asarray(arrays["nodes"])[0][:, None]  # [words, 1]: one row, every ray
         keys, refs = child_keys(ray, root, best_t)
         entered = [key < jnp.inf for key in keys]

@@ -458,8 +458,8 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
                        body, state)
     hits = winner_hits(fn, rays, triangles, triangle_ids, s["out"][:n])
     count = s["out_count"][:n] if counters else None
-    # The rays' validity from the packed rows (contiguous, unlike the device's share of
-    # the caller's arrays: 4.4 against 1.6 ms a device on 500k rays).
+    # The rays' validity (ray_problems), from the packed rows: one place for one device
+    # and for each device's share, in the program that reads the rays anyway.
     status = (jnp.where(s["overflow"], STATUS_STACK_OVERFLOW, 0)
               | jnp.where(jnp.any(s["ray_id"] < n), STATUS_UNFINISHED, 0)
               | _bad_rays_status(rays[:, 0:3], rays[:, 3:6], rays[:, 6])).astype(jnp.int32)

@@ -54,10 +54,29 @@ def single(setup, chunk):
     return radiance
 
 
+#: A batch item equals its single render to float32 rounding, peak-relative (the criterion
+#: the cross-device test below uses too): the shading is the same function compiled for a
+#: batch's shape, so a value may move by a few ulps, which the refractions amplify. On an
+#: AVX2 host (8-wide vectors) 2 of 1,728 values of a 24x18 glass-camel frame differed by
+#: 7.8e-5 (3e-6 of the value, 1e-6 of the peak), before and after the engine's entry pass
+#: alike; a wrong hit moves a pixel by a share of the peak, not by 1e-5 of it.
+LOOP_TOLERANCE = 1e-5
+#: ...except where such an ulp decides a branch: a child whose weight sits at the
+#: renderer's pruning threshold (1e-3) is traced in one render and pruned in the other. A
+#: few values in a thousand may move by up to that threshold's share of the peak (one of
+#: 1,728 moved by 1.02e-5 of the peak in a wavelength-band batch on the AVX2 host).
+BRANCH_FLIPS, PRUNE_SHARE = 0.003, 1e-3
+
+
 def assert_equal_to_loop(radiance, loop):
     assert radiance.shape == (len(loop), H, W, loop[0].shape[-1])
     for item, expected in zip(radiance, loop, strict=True):
-        np.testing.assert_allclose(item, expected, rtol=1e-6, atol=1e-6)
+        peak = np.abs(expected).max()
+        diff = np.abs(np.asarray(item, np.float64) - expected)
+        assert (diff > LOOP_TOLERANCE * peak).mean() <= BRANCH_FLIPS, (
+            f"{int((diff > LOOP_TOLERANCE * peak).sum())} of {diff.size} values differ by "
+            f"more than {LOOP_TOLERANCE} of the peak; largest {diff.max() / peak:.3g}")
+        assert diff.max() <= PRUNE_SHARE * peak, diff.max() / peak
 
 
 # --------------------------------------------------------------------------- equal to the loop
@@ -71,8 +90,7 @@ def test_a_batch_of_cameras_equals_the_loop_of_single_renders(glass19k):
     loop = [single(batch.with_camera(glass19k, c), stats.chunk) for c in cameras]
     assert_equal_to_loop(radiance, loop)
     # The turntable turns: frame 0 is the scene's own view, the others differ from it.
-    np.testing.assert_allclose(radiance[0], single(glass19k, stats.chunk), rtol=1e-6,
-                               atol=1e-6)
+    assert_equal_to_loop(radiance[:1], [single(glass19k, stats.chunk)])
     assert np.abs(radiance[1] - radiance[0]).max() > 1.0
     eye0, eye1 = np.subtract(cameras[0].eye, cameras[0].target), np.subtract(
         cameras[1].eye, cameras[1].target)
@@ -161,8 +179,11 @@ SHARDED = textwrap.dedent("""
     np.save(sys.argv[1], radiance)
     print(json.dumps({"devices": [d.id for d in jax.local_devices()],
                       "placement": stats.placement, "items_per_call": stats.items_per_call,
-                      "equals_loop": all(np.allclose(r, l, rtol=1e-6, atol=1e-6)
-                                         for r, l in zip(radiance, loop)),
+                      # tests/test_batch.py's LOOP_TOLERANCE, BRANCH_FLIPS, PRUNE_SHARE
+                      "equals_loop": all(
+                          (np.abs(r - l) > 1e-5 * np.abs(l).max()).mean() <= 0.003
+                          and np.abs(r - l).max() <= 1e-3 * np.abs(l).max()
+                          for r, l in zip(radiance, loop)),
                       "loop_difference": max(float(np.abs(r - l).max())
                                              for r, l in zip(radiance, loop))}))
 """)
@@ -189,7 +210,8 @@ def _sharded(tmp_path, devices: int):
 def test_the_batch_is_split_over_four_devices_and_equals_one_device(tmp_path):
     """Two processes, one with 4 XLA:CPU devices and one with 1, render the same 4 frames.
 
-    In each the batch equals the loop of single renders to 1e-6. Between them the renders
+    In each the batch equals the loop of single renders (``LOOP_TOLERANCE``, 1e-5 of the
+    peak). Between them the renders
     agree to float32 rounding (peak-relative 1e-5): jrt's *single* renders already differ
     by a few ulps between one device and several (the engine's hits are identical, the
     shading arithmetic is compiled differently around the engine's shard_map; measured

@@ -136,7 +136,9 @@ def test_turntable_batched_against_the_loop(results):
     best = max(rec["loop_images_per_s"], rec["loop_same_chunk_images_per_s"])
     assert rec["ratio"] == pytest.approx(rec["batched_images_per_s"] / best)
     assert rec["peak_radiance"] > 0
-    assert rec["max_abs_difference"] <= 1e-6 * rec["peak_radiance"]
+    # Float32 rounding of the shading compiled for another shape (tests/test_batch.py's
+    # LOOP_TOLERANCE): 1.9e-6 of the peak on an AVX2 host.
+    assert rec["max_abs_difference"] <= 1e-5 * rec["peak_radiance"]
 
 
 def test_rates_and_ratios_agree(results):
