@@ -70,7 +70,7 @@ def _check_ray_values(origins, directions, tmax):
     if not bool(_any_bad_ray(origins, directions, tmax)):
         return
     o, d, t = np.asarray(origins), np.asarray(directions), np.asarray(tmax)
-    for name, bad, allowed in _ray_problems(np, o, d, t):
+    for name, bad, allowed in engine.ray_problems(np, o, d, t):
         if bad.any():
             first = int(np.flatnonzero(bad)[0])
             value = (o if name == "origins" else d if name == "directions" else t)[first]
@@ -79,14 +79,11 @@ def _check_ray_values(origins, directions, tmax):
                 f"such rays of {len(bad)}); allowed: {allowed}")
 
 
-_ray_problems = engine.ray_problems
-
-
 @jax.jit
 def _any_bad_ray(origins, directions, tmax):
-    """Whether any ray fails one of :func:`_ray_problems` (one fused pass on the device)."""
+    """Whether any ray fails :func:`jrt.engine.ray_problems` (one fused pass on the device)."""
     return jnp.any(jnp.stack([bad.any() for _, bad, _ in
-                              _ray_problems(jnp, origins, directions, tmax)]))
+                              engine.ray_problems(jnp, origins, directions, tmax)]))
 
 
 def _check_structure(structure):
