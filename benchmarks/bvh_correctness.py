@@ -1,11 +1,13 @@
 """The BVH against brute force on the full camel ray sets: every kernel, every ray.
 
-    python -m benchmarks.bvh_correctness [--rays 1000000] [--json out/bvh_correctness.json]
+    python -m benchmarks.bvh_correctness [--rays 1000000] [--sets camera,incoherent]
+        [--kernels plane_barycentric,moller_trumbore,watertight] [--json out/bvh_correctness.json]
 
 For each kernel and each set (camera, incoherent), closest hits must be identical (same
 triangle, same t bit for bit, same u, v) and ``occluded`` must agree (tmax: half the rays
 stop short of their closest hit, half go past it). Brute force tests every triangle, so
-this takes minutes; the test suite checks 20k rays of each set.
+this takes minutes (the incoherent set, whose rays nearly all reach the mesh, most of
+them); the test suite checks 20k rays of each set. ``--sets`` and ``--kernels`` run a part.
 """
 
 from __future__ import annotations
@@ -22,22 +24,43 @@ from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
 
+#: The ray sets, by name: (origins, directions) of a mesh's vertices and a ray count.
+SETS = {"camera": camera_set,
+        "incoherent": lambda vertices, n: incoherent_set(vertices, n, seed=0)}
+
+
+def _names(parser, option: str, text: str, allowed) -> list[str]:
+    """The comma list ``text`` of ``option``, each name one of ``allowed`` (else an error)."""
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    unknown = [n for n in names if n not in allowed]
+    if unknown or not names:
+        parser.error(f"{option}: unknown {', '.join(unknown) or '(empty list)'}; allowed: "
+                     f"{', '.join(allowed)}")
+    return names
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rays", type=int, default=1_000_000)
+    parser.add_argument("--sets", default=",".join(SETS),
+                        help=f"comma-separated ray sets, from {', '.join(SETS)} (default all)")
+    parser.add_argument("--kernels", default=",".join(jrt.KERNELS),
+                        help=f"comma-separated triangle kernels, from {', '.join(jrt.KERNELS)} "
+                             "(default all)")
     parser.add_argument("--json", default="out/bvh_correctness.json")
     args = parser.parse_args(argv)
+    chosen_sets = _names(parser, "--sets", args.sets, SETS)
+    kernels = _names(parser, "--kernels", args.kernels, tuple(jrt.KERNELS))
 
     mesh = jrt.load_mesh(jrt.camel_path())
     bvh = accel.build("bvh", mesh.vertices, mesh.faces)
     brute = accel.build("brute", mesh.vertices, mesh.faces)
-    sets = {"camera": camera_set(mesh.vertices, args.rays),
-            "incoherent": incoherent_set(mesh.vertices, args.rays, seed=0)}
+    sets = {name: SETS[name](mesh.vertices, args.rays) for name in chosen_sets}
     record = {"mesh": mesh.summary(), "rays": args.rays, "results": []}
     rng = np.random.default_rng(2)
     for name, (o, d) in sets.items():
         o, d = o[: args.rays], d[: args.rays]
-        for kernel in jrt.KERNELS:
+        for kernel in kernels:
             start = time.perf_counter()
             ref = as_numpy(jrt.closest_hit(brute, o, d, kernel=kernel))
             got = as_numpy(jrt.closest_hit(bvh, o, d, kernel=kernel))

@@ -804,3 +804,37 @@ def test_engine_refuses_an_empty_device_list():
         devices=jax.local_devices()[:1])
     assert int(status) == 0
     assert int(hits.triangle[0]) == int(jrt.closest_hit(structure, o, d).triangle[0]) == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# The 1M-ray correctness script (benchmarks/bvh_correctness.py), run small
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, message", [
+    (["--sets", "cam"], "--sets: unknown cam; allowed: camera, incoherent"),
+    (["--kernels", "watertight,mt"], "--kernels: unknown mt; allowed: plane_barycentric"),
+    (["--kernels", ","], "--kernels: unknown (empty list)"),
+])
+def test_correctness_script_names_what_it_allows(argv, message, capsys):
+    from benchmarks import bvh_correctness
+
+    with pytest.raises(SystemExit):
+        bvh_correctness.main(argv)
+    assert message in capsys.readouterr().err
+
+
+def test_correctness_script_runs_the_chosen_set_and_kernel(camel, camel_brute, tmp_path):
+    """One set, one kernel, 512 rays: one row, whose hit count is brute force's own (traced
+    here) and whose mismatch counts are zero, as the 20k-ray tests above find."""
+    from benchmarks import bvh_correctness
+    from jrt.raysets import camera_set
+
+    record = bvh_correctness.main(["--rays", "512", "--sets", "camera", "--kernels",
+                                   "watertight", "--json", str(tmp_path / "c.json")])
+    (row,) = record["results"]
+    assert (row["set"], row["kernel"], row["rays"]) == ("camera", "watertight", 512)
+    o, d = camera_set(camel.vertices, 512)
+    want = as_numpy(jrt.closest_hit(camel_brute, o[:512], d[:512], kernel="watertight"))
+    assert row["hits"] == int((want["triangle"] >= 0).sum()) > 0
+    assert row["closest_hit_mismatches"] == 0 and row["occluded_mismatches"] == 0
+    assert (tmp_path / "c.json").exists()
