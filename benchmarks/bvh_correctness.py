@@ -23,7 +23,6 @@ from benchmarks.common import write_record
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
-
 #: The ray sets, by name: (origins, directions) of a mesh's vertices and a ray count.
 SETS = {"camera": camera_set,
         "incoherent": lambda vertices, n: incoherent_set(vertices, n, seed=0)}
