@@ -19,23 +19,13 @@ import numpy as np
 
 import accel
 import jrt
-from benchmarks.common import write_record
+from benchmarks.common import comma_names, write_record
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
 #: The ray sets, by name: (origins, directions) of a mesh's vertices and a ray count.
 SETS = {"camera": camera_set,
         "incoherent": lambda vertices, n: incoherent_set(vertices, n, seed=0)}
-
-
-def _names(parser, option: str, text: str, allowed) -> list[str]:
-    """The comma list ``text`` of ``option``, each name one of ``allowed`` (else an error)."""
-    names = [t.strip() for t in text.split(",") if t.strip()]
-    unknown = [n for n in names if n not in allowed]
-    if unknown or not names:
-        parser.error(f"{option}: unknown {', '.join(unknown) or '(empty list)'}; allowed: "
-                     f"{', '.join(allowed)}")
-    return names
 
 
 def main(argv=None) -> dict:
@@ -48,8 +38,14 @@ def main(argv=None) -> dict:
                              "(default all)")
     parser.add_argument("--json", default="out/bvh_correctness.json")
     args = parser.parse_args(argv)
-    chosen_sets = _names(parser, "--sets", args.sets, SETS)
-    kernels = _names(parser, "--kernels", args.kernels, tuple(jrt.KERNELS))
+    def names(option, text, allowed):
+        try:
+            return comma_names(text, allowed)
+        except ValueError as exc:
+            parser.error(f"{option}: {exc}")
+
+    chosen_sets = names("--sets", args.sets, SETS)
+    kernels = names("--kernels", args.kernels, tuple(jrt.KERNELS))
 
     mesh = jrt.load_mesh(jrt.camel_path())
     bvh = accel.build("bvh", mesh.vertices, mesh.faces)

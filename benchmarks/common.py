@@ -14,6 +14,17 @@ from pathlib import Path
 import numpy as np
 
 
+def comma_names(text: str, allowed) -> list[str]:
+    """The names of a comma-separated option, each one of ``allowed``; a ValueError names
+    the unknown ones (or the empty list) and what is allowed."""
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    unknown = [n for n in names if n not in allowed]
+    if unknown or not names:
+        raise ValueError(f"unknown {', '.join(unknown) or '(empty list)'}; allowed: "
+                         f"{', '.join(map(str, allowed))}")
+    return names
+
+
 def jsonable(value):
     """``value`` with NumPy scalars and arrays, tuples and paths turned into JSON types.
 

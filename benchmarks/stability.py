@@ -78,6 +78,7 @@ from tqdm import tqdm
 
 import accel
 import jrt
+from benchmarks.common import comma_names
 from jrt import optics
 from jrt.engine import StackOverflowError, TraversalError
 from jrt.kernels import KERNELS, _gamma, cross, dot
@@ -2315,12 +2316,10 @@ def _json_safe(value):
 def _names(text: str | None, allowed, what: str):
     if text is None:
         return None
-    names = [t.strip() for t in text.split(",") if t.strip()]
-    bad = [n for n in names if n not in allowed]
-    if bad or not names:
-        raise SystemExit(f"--{what}: unknown {', '.join(bad) or '(empty)'}; allowed: "
-                         f"{', '.join(map(str, allowed))}")
-    return names
+    try:
+        return comma_names(text, allowed)
+    except ValueError as exc:
+        raise SystemExit(f"--{what}: {exc}") from None
 
 
 def run(cases=CASES, quick=False, kernels=None, structures=None, progress=False,

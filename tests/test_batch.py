@@ -9,6 +9,7 @@ programs (same shapes), so each distinct program compiles once.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import os
 import re
@@ -68,15 +69,24 @@ LOOP_TOLERANCE = 1e-5
 BRANCH_FLIPS, PRUNE_SHARE = 0.003, 1e-3
 
 
+def loop_mismatch(item, expected):
+    """Why a batch item is not its single render by the criterion above, or None."""
+    peak = np.abs(expected).max()
+    diff = np.abs(np.asarray(item, np.float64) - expected)
+    off = diff > LOOP_TOLERANCE * peak
+    if off.mean() > BRANCH_FLIPS:
+        return (f"{int(off.sum())} of {diff.size} values differ by more than "
+                f"{LOOP_TOLERANCE} of the peak; largest {diff.max() / peak:.3g}")
+    if diff.max() > PRUNE_SHARE * peak:
+        return f"largest difference {diff.max() / peak:.3g} of the peak, above {PRUNE_SHARE}"
+    return None
+
+
 def assert_equal_to_loop(radiance, loop):
     assert radiance.shape == (len(loop), H, W, loop[0].shape[-1])
     for item, expected in zip(radiance, loop, strict=True):
-        peak = np.abs(expected).max()
-        diff = np.abs(np.asarray(item, np.float64) - expected)
-        assert (diff > LOOP_TOLERANCE * peak).mean() <= BRANCH_FLIPS, (
-            f"{int((diff > LOOP_TOLERANCE * peak).sum())} of {diff.size} values differ by "
-            f"more than {LOOP_TOLERANCE} of the peak; largest {diff.max() / peak:.3g}")
-        assert diff.max() <= PRUNE_SHARE * peak, diff.max() / peak
+        problem = loop_mismatch(item, expected)
+        assert problem is None, problem
 
 
 # --------------------------------------------------------------------------- equal to the loop
@@ -179,17 +189,15 @@ SHARDED = textwrap.dedent("""
     np.save(sys.argv[1], radiance)
     print(json.dumps({"devices": [d.id for d in jax.local_devices()],
                       "placement": stats.placement, "items_per_call": stats.items_per_call,
-                      "equals_loop": all(
-                          (np.abs(r - l) > LOOP_TOLERANCE * np.abs(l).max()).mean()
-                          <= BRANCH_FLIPS
-                          and np.abs(r - l).max() <= PRUNE_SHARE * np.abs(l).max()
-                          for r, l in zip(radiance, loop)),
+                      "equals_loop": all(loop_mismatch(r, l) is None
+                                         for r, l in zip(radiance, loop)),
                       "loop_difference": max(float(np.abs(r - l).max())
                                              for r, l in zip(radiance, loop))}))
 """)
-# The subprocess judges its batch by this module's criterion (assert_equal_to_loop).
+# The subprocess judges its batch by this module's criterion, the same function.
 SHARDED = (f"LOOP_TOLERANCE, BRANCH_FLIPS, PRUNE_SHARE = "
-           f"{LOOP_TOLERANCE!r}, {BRANCH_FLIPS!r}, {PRUNE_SHARE!r}\n" + SHARDED)
+           f"{LOOP_TOLERANCE!r}, {BRANCH_FLIPS!r}, {PRUNE_SHARE!r}\n"
+           + inspect.getsource(loop_mismatch) + SHARDED)
 
 
 def _sharded(tmp_path, devices: int):
