@@ -178,8 +178,28 @@ def watertight(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
     (see ``_edge_function``), so a ray through an edge or a vertex hits at least one of the
     triangles around it: a closed mesh has no cracks. The caller picks among tied hits.
 
-    ``t`` must also exceed pbrt's conservative bound on its rounding error (pbrt-v4,
-    section 6.8.7), so that a ray leaving a surface does not hit it again at t ≈ 0.
+    A hit must also lie certainly in front of the origin. Either certificate will do:
+
+    - pbrt's: ``t`` exceeds its conservative bound ``δt`` on its own rounding error
+      (pbrt-v4, section 6.8.7, "Avoiding Intersections behind Ray Origins"), so that a ray
+      leaving a surface does not hit it again at t ≈ 0;
+    - all three corners lie strictly ahead of the origin (sheared ``z_i > 0``), and the
+      triangle is neither degenerate nor seen edge-on. The signs of the ``z_i`` are exact
+      (a rounded difference and a product keep their signs), and with the three edge
+      functions of one sign ``t = Σ e_i z_i / Σ e_i`` is a weighted mean of the ``z_i``, so
+      ``t > 0`` whatever the rounding of the edge functions. Non-degeneracy is
+      ``moller_trumbore``'s test (``det = e1 · (D × e2)`` beyond its rounding error, see
+      ``_resolvable``): it works on the corners' differences, so unlike ``δt`` it does not
+      grow with the distance to the origin.
+
+    The second certificate is what keeps the kernel watertight. ``δt`` scales every edge
+    function's error by the largest corner coordinates (and the shear's error by the
+    distance) and divides by ``|det|``, so for a sliver (the camel has triangles with one
+    edge 1e-4 of the others) it can exceed ``t`` itself, hundreds of units away. A ray
+    through the sliver's short edge may hit only the sliver (the one triangle there whose
+    rounded edge functions agree), and the ``δt`` test alone then left a crack, at any
+    scale. ``δt`` still decides for triangles that straddle the origin's plane, where ``t``
+    can be near 0.
     """
     dtype = direction.dtype
     abs_d = jnp.abs(direction)
@@ -226,7 +246,16 @@ def watertight(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
     delta_t = 3 * (_gamma(3, dtype) * max_e * max_zt + delta_e * max_zt + delta_z * max_e)
     delta_t = delta_t * jnp.abs(inv_det)
 
-    hit = (~mixed) & (det != 0) & (t > delta_t) & (t > 0) & (t < jnp.inf)
+    # The second certificate (see the docstring): every corner ahead of the origin, and
+    # Möller–Trumbore's determinant resolvable (not a degenerate triangle or a ray in its
+    # plane).
+    e1_3d = v1 - v0
+    e2_3d = v2 - v0
+    det_3d = dot(e1_3d, cross(direction, e2_3d))
+    proper = _resolvable(det_3d, dot(jnp.abs(e1_3d), _abs_cross(direction, e2_3d)))
+    ahead = (p0z > 0) & (p1z > 0) & (p2z > 0) & proper
+
+    hit = (~mixed) & (det != 0) & (ahead | (t > delta_t)) & (t > 0) & (t < jnp.inf)
     return _finish(hit, t, e1 * inv_det, e2 * inv_det)
 
 
