@@ -22,16 +22,16 @@ NAMES: tuple[str, ...] = ("brute", "bvh", "kdtree", "octree", "bsp", "grid")
 #: as another kind (or missing an array) is an error, never a silent wrong answer.
 SIGNATURES: dict[str, tuple[frozenset, frozenset]] = {
     "brute": (frozenset({"triangles", "triangle_ids"}), frozenset()),
-    "bvh": (frozenset({"nodes", "triangles", "triangle_ids"}),
+    "bvh": (frozenset({"nodes", "triangles", "triangle_ids", "frame"}),
             frozenset({"leaf_bits", "width"})),
-    "kdtree": (frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids"}),
+    "kdtree": (frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids",
+                          "frame"}), frozenset({"leaf_bits"})),
+    "octree": (frozenset({"nodes", "references", "triangles", "triangle_ids", "frame"}),
                frozenset({"leaf_bits"})),
-    "octree": (frozenset({"nodes", "references", "triangles", "triangle_ids"}),
-               frozenset({"leaf_bits"})),
-    "bsp": (frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids"}),
-            frozenset({"leaf_bits"})),
+    "bsp": (frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids",
+                       "frame"}), frozenset({"leaf_bits"})),
     "grid": (frozenset({"cell_start", "grid", "references", "skip", "triangles",
-                        "triangle_ids"}), frozenset()),
+                        "triangle_ids", "frame"}), frozenset()),
 }
 
 

@@ -24,13 +24,14 @@ planes and overestimates both sides of an oblique cut. N_L, N_R count triangles 
 vertex on each side (whole triangles, projected on n), from bins as the kd-tree does; the
 triangle-plane candidates are counted exactly.
 
-**Which side a triangle goes to**: each side whose half-space, widened by
-``delta = CELL_MARGIN * (|c| + sum_i |n_i| max(|lo_i|, |hi_i|))`` (B's corners), holds
-one of its vertices (in float64, with the stored float32 plane). A triangle meets a
+**Which side a triangle goes to**: each side whose half-space, widened by the triangle's
+margin ``delta = CELL_MARGIN * (sum_i |n_i| (hi_i - lo_i) + extent)`` (B's size along n
+and the triangle's own extent, ``accel.geometry.reference_margin``, which says why that
+suffices with the traversal's run-time margins), holds one of its vertices (in float64,
+with the stored float32 plane, in the structure's local frame). A triangle meets a
 half-space iff one of its vertices lies in it, so every triangle that reaches a leaf's
-region is referenced there (straddlers on both sides). The margin scales with the
-region's magnitude, not just the plane's offset, so that a plane through the origin still
-absorbs the rounding of hit points far from it and of a near-parallel ray's n . d.
+widened region is referenced there (straddlers on both sides). Neither term depends on
+where the scene sits or how far apart its objects are.
 
 On the camel the SAH picks an oblique plane at some 450 of 97,700 nodes (general planes at
 every node of 16 or more references were picked at 50,000, and traced slower: see the
@@ -62,10 +63,11 @@ import time
 import numpy as np
 
 from accel.geometry import (
-    CELL_MARGIN,
     degenerate_mask,
     leaf_bits_for,
     leaf_references,
+    reference_margin,
+    triangle_extents,
     triangle_vertices,
 )
 from accel.kdtree import (
@@ -75,6 +77,7 @@ from accel.kdtree import (
     default_max_depth,
     finish_plane_tree,
     half_area,
+    local_frame,
     ranks_in_segments,
     split_cost,
 )
@@ -126,14 +129,13 @@ def halfspace_box(lo, hi, n, c):
     return new_lo, new_hi
 
 
-def plane_margin(lo, hi, n, c):
-    """The widening of a plane at a node: CELL_MARGIN (|c| + sum |n_i| max |corner_i|)."""
-    magnitude = (np.abs(n) * np.maximum(np.abs(lo), np.abs(hi))).sum(axis=-1)
-    return CELL_MARGIN * (np.abs(c) + magnitude)
+def size_along(lo, hi, n):
+    """The extent of boxes ``[lo, hi]`` [..., 3] along unit normals ``n``: sum |n_i| size_i."""
+    return (np.abs(n) * (np.asarray(hi, np.float64) - lo)).sum(axis=-1)
 
 
-def _best_planes(pmin, pmax, seg, counts, normals, exact, box_lo, box_hi, bins, ct, ci,
-                 bonus):
+def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, bins, ct,
+                 ci, bonus):
     """Best plane of every node of a group: (cost, normal index, offset) [K] each.
 
     ``pmin``, ``pmax`` [R, C] (float32): the extent of each reference's triangle along each
@@ -179,7 +181,7 @@ def _best_planes(pmin, pmax, seg, counts, normals, exact, box_lo, box_hi, bins, 
             right.append(np.clip(b_above[:, :, i, None] - a * c, 0.0, d))
         return tuple((e[0] * e[1] + e[1] * e[2] + e[2] * e[0]) / area for e in (left, right))
 
-    magnitude = (absn * np.maximum(np.abs(lo), np.abs(hi))).sum(axis=2)
+    largest = np.maximum.reduceat(rext, offsets)[:, None]  # the node's largest triangle
     elo = np.maximum(np.minimum.reduceat(pmin, offsets, axis=0), n_lo)  # [K, C] float64
     ehi = np.minimum(np.maximum.reduceat(pmax, offsets, axis=0), n_hi)
     width = (ehi - elo) / bins
@@ -208,8 +210,8 @@ def _best_planes(pmin, pmax, seg, counts, normals, exact, box_lo, box_hi, bins, 
     cost[~((width > 0)[:, :, None] & (cand_c > n_lo[:, :, None])
            & (cand_c < n_hi[:, :, None]) & np.isfinite(cost))] = np.inf
     # Empty-space cuts, and the triangles' own planes, as extra candidates [K, C, 3].
-    gap_lo = EMPTY_CUT_GAP * (np.abs(elo) + magnitude + (elo - n_lo))
-    gap_hi = EMPTY_CUT_GAP * (np.abs(ehi) + magnitude + (n_hi - ehi))
+    gap_lo = EMPTY_CUT_GAP * (largest + (elo - n_lo))
+    gap_hi = EMPTY_CUT_GAP * (largest + (n_hi - ehi))
     extra_c = _as_float32(np.stack([elo - gap_lo, ehi + gap_hi, np.nan_to_num(exact)],
                                    axis=2))
     least = MIN_EMPTY_CUT * (box_hi - box_lo).max(axis=1)[:, None]
@@ -222,9 +224,9 @@ def _best_planes(pmin, pmax, seg, counts, normals, exact, box_lo, box_hi, bins, 
     cols = np.flatnonzero(np.any(extra_ok[:, :, 2], axis=0))
     if cols.size:  # exact counts at the triangles' own planes
         plane = extra_c[:, cols, 2]
-        delta = CELL_MARGIN * (np.abs(plane) + magnitude[:, cols])
-        below = (pmin[:, cols] <= (plane + delta)[seg]).astype(np.int64)
-        above = (pmax[:, cols] >= (plane - delta)[seg]).astype(np.int64)
+        delta = reference_margin((n_hi - n_lo)[:, cols][seg], rext[:, None])
+        below = (pmin[:, cols] <= plane[seg] + delta).astype(np.int64)
+        above = (pmax[:, cols] >= plane[seg] - delta).astype(np.int64)
         nl_extra[:, cols, 2] = np.add.reduceat(below, offsets, axis=0)
         nr_extra[:, cols, 2] = np.add.reduceat(above, offsets, axis=0)
     e_left, e_right = side_areas(extra_c)
@@ -284,13 +286,12 @@ def build(
     tris = triangle_vertices(vertices, np.asarray(faces)[ids]).reshape(-1, 3, 3)
     t_count = ids.shape[0]
     depth_limit = default_max_depth(t_count) if max_depth is None else int(max_depth)
-    tri64 = tris.astype(np.float64)
+    frame, tri64, bounds = local_frame(tris)
+    extent = triangle_extents(tri64)
     if t_count:
-        bounds = np.stack([tris.min(axis=(0, 1)), tris.max(axis=(0, 1))])
         tri_normals = _as_float32(_unit(np.cross(tri64[:, 1] - tri64[:, 0],
                                                  tri64[:, 2] - tri64[:, 0])))
     else:
-        bounds = np.zeros((2, 3), np.float32)
         tri_normals = np.zeros((0, 3))
     # The fixed orientations (axes, diagonals) and every triangle's extent along them.
     fixed = _as_float32(np.concatenate([AXES, DIAGONALS]))
@@ -359,7 +360,8 @@ def build(
                 pmin, pmax = fixed_min32[g_tri, :3], fixed_max32[g_tri, :3]
                 kind_of = np.zeros(3, np.int64)
             g_cost, g_pick, g_offset = _best_planes(
-                pmin, pmax, g_seg, counts[nodes], cand, exact, act_lo[nodes], act_hi[nodes],
+                pmin, pmax, extent[g_tri], g_seg, counts[nodes], cand, exact, act_lo[nodes],
+                act_hi[nodes],
                 bins, ct, ci, bonus)
             cost[nodes], offset[nodes] = g_cost, g_offset
             normal[nodes] = cand[np.arange(nodes.size), g_pick]
@@ -385,7 +387,7 @@ def build(
         lo, hi = act_lo[nodes], act_hi[nodes]
         lo0, hi0 = halfspace_box(lo, hi, n, c)
         lo1, hi1 = halfspace_box(lo, hi, -n, -c)
-        delta = plane_margin(lo, hi, n, c)
+        size_n = size_along(lo, hi, n)
         child_ids = next_id + np.arange(2 * m)
         next_id += 2 * m
         split_ids.append(act_ids[nodes])
@@ -408,7 +410,8 @@ def build(
         if own.size:
             t_min, t_max = _project(tri64[rtri[sel[own]]], n[r[own]][:, None, :])
             p_min[own], p_max[own] = t_min[:, 0], t_max[:, 0]
-        member = [p_min <= c[r] + delta[r], p_max >= c[r] - delta[r]]
+        delta = reference_margin(size_n[r], extent[rtri[sel]])
+        member = [p_min <= c[r] + delta, p_max >= c[r] - delta]
         seg_first = np.zeros(m, np.int64)
         seg_first[1:] = np.cumsum(np.bincount(r, minlength=m))[:-1]
         n_child = np.stack([np.bincount(r[member[0]], minlength=m),
@@ -433,7 +436,7 @@ def build(
         depth += 1
 
     return _flatten(
-        tris, ids, bounds, next_id, node_lo, node_hi, node_depth,
+        tris, ids, frame, bounds, next_id, node_lo, node_hi, node_depth,
         (split_ids, split_normal, split_offset, split_child),
         (leaf_ids, leaf_first, leaf_count, leaf_refs),
         params={"bins": bins, "triangle_planes": triangle_planes,
@@ -450,7 +453,7 @@ def _cat(parts, dtype, shape=(0,)):
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
 
 
-def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, leaves, *,
+def _flatten(tris, ids, frame, bounds, total, node_lo, node_hi, node_depth, splits, leaves, *,
              params, extra, start_time):
     s_ids = _cat(splits[0], np.int64)
     s_normal = _cat(splits[1], np.float64, (0, 3))
@@ -482,6 +485,6 @@ def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, lea
         nodes[0, 0] = 1.0
         nodes[0, 3] = bounds[1, 0]
         nodes.view(np.int32)[0, 4:6] = [ref[0] if total else -1, -1]
-    return finish_plane_tree("bsp", nodes, bounds, references, tris, ids, leaf_bits,
+    return finish_plane_tree("bsp", nodes, frame, bounds, references, tris, ids, leaf_bits,
                              node_lo, node_hi, node_depth, s_ids, l_ids, l_count, total,
                              params, extra, start_time)

@@ -53,6 +53,16 @@ side). The origin is the lower corner of the union of the children's boxes and `
 the smallest power of two at least 1/255 of its extent (at least 2^-100, a normal
 float); see :func:`node_rows` and :func:`child_boxes`.
 
+Every box is in the structure's local frame: ``frame`` float32 [3] (12 bytes) is its
+origin, the point of the triangles' bounding box nearest the coordinate origin (0 for a
+scene around the origin: ``accel.geometry.frame_origin``), and
+each triangle's box is its exact box minus ``frame``, rounded outward to float32. The
+engine moves every ray's origin into that frame before the box tests (``jrt.engine``),
+whose margins (2^-16 of the box's and the origin's magnitudes) then follow the scene's
+extent and the ray's distance from it, not the scene's position: far from the coordinate
+origin the boxes stay as tight, and the steps per ray as few, as at the origin. The
+triangles themselves stay in world coordinates (the kernels read them).
+
 A reference ``r >= 0`` is the row of an interior node. ``r < 0`` is a leaf:
 ``~r = (first << leaf_bits) | count``, the leaf's triangles being rows
 ``first .. first+count-1`` of ``triangles`` (stored in leaf order). ``r = -1`` (``~0``:
@@ -68,7 +78,16 @@ import time
 
 import numpy as np
 
-from accel.geometry import degenerate_mask, leaf_bits_for, leaf_references, triangle_vertices
+from accel.geometry import (
+    degenerate_mask,
+    float32_down,
+    float32_up,
+    frame_origin,
+    leaf_bits_for,
+    leaf_references,
+    local_corners,
+    triangle_vertices,
+)
 from accel.structure import Structure
 
 #: Defaults: 16 bins (Wald 2007 found 16-32 bins within a few percent of a full SAH
@@ -230,7 +249,11 @@ def build(
     ids = np.flatnonzero(keep).astype(np.int32)
     tris = triangle_vertices(vertices, np.asarray(faces)[ids])
     t_count = ids.shape[0]
-    lo32, hi32 = tris.min(axis=1), tris.max(axis=1)
+    # Boxes in the local frame (accel.geometry.frame_origin), each float32 triangle's
+    # exact box rounded outward.
+    frame = frame_origin(tris)
+    local = local_corners(tris, frame)
+    lo32, hi32 = float32_down(local.min(axis=1)), float32_up(local.max(axis=1))
     lo, hi = lo32.astype(np.float64), hi32.astype(np.float64)
     cent = 0.5 * (lo + hi)
 
@@ -325,7 +348,7 @@ def build(
         seg_node, seg_first, seg_count = child_ids, child_first, child_count
 
     return _flatten(
-        tris, ids, order, node_lo, node_hi, node_first, node_count, node_depth,
+        tris, ids, frame, order, node_lo, node_hi, node_first, node_count, node_depth,
         (parent_ids, first_child_ids), method=method, bins=bins, max_leaf_size=max_leaf_size,
         width=int(width), ct=traversal_cost,
         ci=intersection_cost, degenerate=int((~keep).sum()), forced_leaves=forced_leaves,
@@ -453,7 +476,7 @@ def child_boxes(nodes: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
     return _decode(origin, scale, q[..., :3]), _decode(origin, scale, q[..., 3:])
 
 
-def _flatten(tris, ids, order, node_lo, node_hi, node_first, node_count, node_depth, links,
+def _flatten(tris, ids, frame, order, node_lo, node_hi, node_first, node_count, node_depth, links,
              *, method, bins, max_leaf_size, width, ct, ci, degenerate, forced_leaves,
              start_time):
     if node_lo:
@@ -510,7 +533,8 @@ def _flatten(tris, ids, order, node_lo, node_hi, node_first, node_count, node_de
     else:
         sah = float(ci * leaf_counts.sum())
     wide_interior = int(wide_ref.shape[0]) if interior[0] else 0
-    arrays = {"nodes": nodes, "triangles": triangles, "triangle_ids": triangle_ids}
+    arrays = {"nodes": nodes, "triangles": triangles, "triangle_ids": triangle_ids,
+              "frame": np.asarray(frame, np.float32)}
     stats = {
         "build_seconds": time.perf_counter() - start_time,
         "method": method,
@@ -528,7 +552,7 @@ def _flatten(tris, ids, order, node_lo, node_hi, node_first, node_count, node_de
         "triangles_per_leaf_max": int(leaf_counts.max()) if leaf_counts.size else 0,
         "leaves_over_max_depth": forced_leaves,
         "sah_cost": float(sah),
-        "bytes": int(nodes.nbytes + triangles.nbytes + triangle_ids.nbytes),
+        "bytes": int(sum(a.nbytes for a in arrays.values())),
     }
     return Structure(kind="bvh", arrays=arrays,
                      layout=(("leaf_bits", leaf_bits), ("width", width)), stats=stats)

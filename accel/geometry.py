@@ -32,12 +32,90 @@ def bounds(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v.min(axis=0), v.max(axis=0)
 
 
+def frame_origin(triangles: np.ndarray) -> np.ndarray:
+    """float32 [3]: the origin of a structure's local frame, the point of the triangles'
+    bounding box nearest the coordinate origin (the origin itself when the box holds it,
+    zeros when there are no triangles).
+
+    Cells, planes and boxes are built and stored relative to it, and the traversal moves
+    each ray's origin into the same frame (``o - frame``, ``jrt.engine``). Every margin
+    (:data:`CELL_MARGIN` here, ``jrt.engine.BOX_MARGIN`` there) grows with the magnitude
+    of the coordinates it protects. Measured from a point of the scene's own box, that
+    magnitude is at most the box's diagonal (plus the ray origin's distance from the
+    box), not where the scene happens to sit: a mesh 1e3 or 1e6 times its size away from
+    the coordinate origin builds the same cells, with as many references, as at the
+    origin. A scene whose box holds the coordinate origin keeps world coordinates (the
+    frame is 0, and nothing is rounded), so detail near the origin keeps its resolution
+    too. The triangle kernels read the stored float32 triangles in world coordinates, so
+    the hits stay brute force's.
+    """
+    tri = np.asarray(triangles, np.float32).reshape(-1, 3)
+    if tri.shape[0] == 0:
+        return np.zeros(3, np.float32)
+    return np.clip(np.float32(0), tri.min(axis=0), tri.max(axis=0)).astype(np.float32)
+
+
+def local_corners(triangles: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """float64 [..., 3]: ``triangles - frame``, exactly.
+
+    Both are float32, so their difference has at most 24 significant bits plus the
+    exponent gap between them, and float64 holds it exactly whenever that gap is under 29
+    binades, and exactly (0 is subtracted) when the frame is the coordinate origin. A gap
+    larger than that needs a corner within 2^-29 of the frame's magnitude of 0 while the
+    frame, a point of the box nearest 0, is not 0: on that axis the box then holds both,
+    so the frame's magnitude is at most the box's extent, and the difference is rounded by
+    at most 2^-53 of it, 2^-37 of any margin (2^-16 of the extent). The builders decide
+    every reference on these coordinates.
+    """
+    return np.asarray(triangles, np.float32).astype(np.float64) - np.asarray(
+        frame, np.float32).astype(np.float64)
+
+
+def float32_down(x: np.ndarray) -> np.ndarray:
+    """The largest float32 <= x (float64 in): a lower bound stored in float32."""
+    x = np.asarray(x, np.float64)
+    y = x.astype(np.float32)
+    return np.where(y.astype(np.float64) > x, np.nextafter(y, np.float32(-np.inf)), y)
+
+
+def float32_up(x: np.ndarray) -> np.ndarray:
+    """The smallest float32 >= x (float64 in): an upper bound stored in float32."""
+    x = np.asarray(x, np.float64)
+    y = x.astype(np.float32)
+    return np.where(y.astype(np.float64) < x, np.nextafter(y, np.float32(np.inf)), y)
+
+
 #: Relative widening of a cell (a node's region, a grid cell) when deciding which
 #: triangles it references. A triangle whose hit point lies within this distance of a
 #: cell is referenced by the cell, so the few ulps by which a kernel's computed hit point
 #: strays from the triangle (and a ray's computed crossing of a cell face) never let a
 #: hit fall between two cells. Matches the traversal's ``jrt.engine.BOX_MARGIN``.
 CELL_MARGIN = 2.0**-16
+
+
+def triangle_extents(corners: np.ndarray) -> np.ndarray:
+    """float64 [T]: the largest side of each triangle's bounding box (corners [T, 3, 3])."""
+    c = np.asarray(corners, np.float64)
+    return (c.max(axis=1) - c.min(axis=1)).max(axis=1) if c.shape[0] else np.zeros(0)
+
+
+def reference_margin(size, extent):
+    """How far outside a cell a triangle is still referenced by it: :data:`CELL_MARGIN` of
+    the cell's ``size`` (along the axis or normal in question) plus the triangle's own
+    ``extent`` (:func:`triangle_extents`), broadcast.
+
+    This is what the margin protects, and nothing else: a kernel's computed hit point
+    strays from the triangle by its rounding, a few 2^-24 of the distances it subtracts
+    (``v - o``, Woop et al.'s shear; at most ``gamma_n (|q - o| + extent)``, q the hit
+    point). The part that grows with the ray's travel ``|q - o|`` is covered at run time,
+    where the ray is known: the traversals widen every plane and box by ``BOX_MARGIN``
+    (2^-16) of the origin's and the plane's magnitude in the structure's frame, and every
+    interval by 2^-16 of t (``jrt.engine``). The part that grows with the triangle's
+    size is covered here, 2^-16 of it (32 times gamma_5 of float32). Neither depends on
+    where the scene sits, nor on how far apart its objects are: two camels 1e3 apart
+    build the cells of one camel twice, with no more references.
+    """
+    return CELL_MARGIN * (np.asarray(size, np.float64) + np.asarray(extent, np.float64))
 
 
 def widen_boxes(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,17 +15,43 @@ one cell, such as the zero extent of a planar mesh) gets one cell on that axis, 
 ``density * N`` cells are shared out over the other axes instead (``ceil(extent_a *
 sqrt(density * N / area))`` for a planar mesh), so the volume never divides by zero.
 
+**Local frame**: the grid is built and stored relative to ``frame =
+accel.geometry.frame_origin(triangles)`` (a point of the triangles' bounding box: the one
+nearest the coordinate origin, 0 when the box holds it). Every geometric decision (the
+box, the resolution, the cell planes, the margins, which cells reference which triangles)
+is taken on the corners ``triangles - frame``, exact in float64 (``accel.geometry.
+local_corners``), and the grid row holds local coordinates; the traversal moves each ray
+into the frame (``o - frame``, ``jrt.engine``), while the triangle kernels keep reading
+the stored world-coordinate ``triangles``, so the hits stay brute force's. Why: every
+margin below is relative to the magnitude of the coordinates it protects, and in world
+coordinates a scene far from the coordinate origin got margins of its distance, not of
+its size (the camel, 69k triangles 1.4 units across, moved by (1000, -700, 1300): 74 s,
+125 MB and 171,873 non-empty cells, against 0.5 s, 6.2 MiB and 27k at the origin). In
+the frame the magnitudes are the scene's extent (and the ray origin's distance from the
+frame), wherever the scene sits, and the build is translation-invariant. The margins
+still cover what they must: the watertight and Möller–Trumbore kernels round relative to
+``|v - o|`` (the corners seen from the ray origin), which does not depend on where the
+scene sits, and moving the ray origin into the frame rounds it by 2^-24 of ``|o -
+frame|``: an ulp of the origin's local coordinates, among the few ulps the margins cover
+(``jrt.grid``), 2^-8 of the margin's 2^-16. (The plane-and-barycentric kernel rounds
+``O + tD`` and ``d - N.O`` in world coordinates, by ulps of the scene's distance from the
+coordinate origin: far from it, that kernel's hits can stray from the triangle by more
+than the margins, and on such rays the grid may then differ from brute force.)
+
 **Cells**: cell (i, j, k) is the box ``[P_x(i), P_x(i+1)] x [P_y(j), P_y(j+1)] x
-[P_z(k), P_z(k+1)]`` with the planes ``P_a(m) = lo_a + m * size_a`` evaluated in float32
-as the traversal does (where XLA contracts it into a fused multiply-add the plane moves by
-an ulp, which the widening absorbs). A triangle is referenced by every cell whose widened
-box it overlaps by the exact separating-axis test (``accel.geometry.
-triangles_overlap_boxes``, float64, touching counts). The widening is
-``accel.geometry.widen_boxes`` (CELL_MARGIN = 2^-16 of the cell's corners and size) plus
-CELL_MARGIN of the grid box's largest corner coordinate: near the coordinate origin a
-cell's own corners are small, and the margin must still cover the rounding of the
-traversal's crossing distances, a few ulps of the ray's travel through the scene (see
-``jrt.grid``). So a hit the walk meets in a cell, or a few ulps beside it, is never missed.
+[P_z(k), P_z(k+1)]`` (local coordinates) with the planes ``P_a(m) = lo_a + m * size_a``
+evaluated in float32 as the traversal does (where XLA contracts it into a fused
+multiply-add the plane moves by an ulp, which the widening absorbs). The box ``[lo, hi]``
+is the bounds of the local corners rounded outward to float32 (``accel.geometry.
+float32_down`` and ``float32_up``), so it holds every corner. A triangle is referenced by
+every cell whose widened box it overlaps by the exact separating-axis test (``accel.
+geometry.triangles_overlap_boxes`` on the float64 local corners, touching counts). The
+widening is ``accel.geometry.widen_boxes`` (CELL_MARGIN = 2^-16 of the cell's corners
+and size) plus CELL_MARGIN of the grid box's largest local corner coordinate (at least
+half the box's largest extent, since the box holds the frame): near the frame a cell's
+own corners are small, and the margin must still cover the rounding of the traversal's
+crossing distances, a few ulps of the ray's travel through the scene (see ``jrt.grid``).
+So a hit the walk meets in a cell, or a few ulps beside it, is never missed.
 
 **Empty-space distances** (for the traversal's leaps, Cohen & Sheffer's "proximity
 clouds", The Visual Computer 1994): every cell stores its Chebyshev distance in cells to
@@ -44,11 +70,12 @@ sorted by cell (stable, so a cell lists its triangles in row order).
 **Layout** (``layout`` is empty: the resolution and the box travel in ``grid``, so every
 grid of the same array shapes shares one compiled traversal):
 
-``grid`` float32 [16], 64 bytes:
+``grid`` float32 [16], 64 bytes, in the local frame (coordinates relative to ``frame``):
 
     bytes  0-11  floats 0-2    lo: the grid box's lower corner (x, y, z), the bounds of
-                               the triangles (0 for a mesh without triangles)
-    bytes 12-23  floats 3-5    hi: the box's upper corner
+                               the local corners rounded down to float32 (0 for a mesh
+                               without triangles)
+    bytes 12-23  floats 3-5    hi: the box's upper corner, rounded up
     bytes 24-35  floats 6-8    size: the cell size per axis, float32((hi - lo) / n)
                                (0 on a flat axis)
     bytes 36-47  floats 9-11   inv_size: float32(n / (hi - lo)) (0 on a flat axis)
@@ -66,7 +93,11 @@ cell, ascending within a cell (a mesh without triangles keeps one unused zero en
 that the traversal's gathers stay in range).
 
 ``triangles`` float32 [T, 3, 3] (36 bytes a row) and ``triangle_ids`` int32 [T] (4 bytes):
-the non-degenerate faces in face order, as ``accel.brute``.
+the non-degenerate faces in face order, as ``accel.brute`` (world coordinates).
+
+``frame`` float32 [3], 12 bytes: the origin of the local frame in world coordinates
+(``accel.geometry.frame_origin``; zeros for a mesh without triangles). The engine moves
+every ray origin into it (``o - frame``) before the grid's box and cell tests.
 
 **Parameters**: ``density`` (lambda; default 8: the upper end of the 1-8 range of the
 papers above; pbrt's grid accelerator (Pharr & Humphreys, 1st and 2nd editions:
@@ -97,6 +128,10 @@ import numpy as np
 from accel.geometry import (
     CELL_MARGIN,
     degenerate_mask,
+    float32_down,
+    float32_up,
+    frame_origin,
+    local_corners,
     triangle_vertices,
     triangles_overlap_boxes,
     widen_boxes,
@@ -188,9 +223,10 @@ def widened_intervals(row: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per axis, the widened float64 [n] lower and upper bounds of the cells.
 
     ``widen_boxes`` (CELL_MARGIN of the cell's corners and size) plus CELL_MARGIN of the
-    grid box's largest corner coordinate: near the coordinate origin a cell's own corners
-    are small, and the margin must still cover the rounding of a crossing distance, a
-    few ulps of the ray's travel through the scene (see ``jrt.grid``).
+    grid box's largest corner coordinate, all in the local frame (the row's coordinates):
+    near the frame a cell's own corners are small, and the margin must still cover the
+    rounding of a crossing distance, a few ulps of the ray's travel through the scene
+    (see ``jrt.grid``).
     """
     res = row.view(np.int32)[12:15]
     scale = CELL_MARGIN * float(np.abs(row[0:6].astype(np.float64)).max())
@@ -248,13 +284,17 @@ def _candidate_ranges(tri_lo, tri_hi, intervals):
     return first, np.maximum(last, first)
 
 
-def _references(tris: np.ndarray, row: np.ndarray):
-    """(cell, triangle row) of every reference, sorted by cell then row: int64 [R] each."""
+def _references(local: np.ndarray, row: np.ndarray):
+    """(cell, triangle row) of every reference, sorted by cell then row: int64 [R] each.
+
+    ``local``: float64 [T, 3, 3], the triangles' corners in the grid's frame (the grid
+    row's coordinates).
+    """
     res = row.view(np.int32)[12:15].astype(np.int64)
-    t_count = tris.shape[0]
+    t_count = local.shape[0]
     if t_count == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    tri64 = tris.astype(np.float64)
+    tri64 = np.asarray(local, np.float64)
     intervals = widened_intervals(row)
     first, last = _candidate_ranges(tri64.min(axis=1), tri64.max(axis=1), intervals)
     width = last - first + 1
@@ -306,15 +346,21 @@ def build(
     ids = np.flatnonzero(keep).astype(np.int32)
     tris = triangle_vertices(vertices, np.asarray(faces)[ids])
     t_count = tris.shape[0]
+    # Every decision is taken in the local frame (module docstring): the corners relative
+    # to a point of their box, exactly, in float64; the box stored in float32 rounded
+    # outward, so that it still holds every corner.
+    frame = frame_origin(tris)
+    local = local_corners(tris, frame)
     if t_count:
-        lo, hi = tris.min(axis=(0, 1)), tris.max(axis=(0, 1))
+        lo = float32_down(local.min(axis=(0, 1)))
+        hi = float32_up(local.max(axis=(0, 1)))
     else:
         lo = hi = np.zeros(3, np.float32)
     res = resolution(hi.astype(np.float64) - lo.astype(np.float64), t_count, density,
                      max_resolution)
     row = grid_row(lo, hi, res)
     cells = int(res.prod())
-    cell, refs = _references(tris, row)
+    cell, refs = _references(local, row)
     per_cell = np.bincount(cell, minlength=cells)
     cell_start = np.zeros(cells + 1, np.int64)
     np.cumsum(per_cell, out=cell_start[1:])
@@ -329,6 +375,7 @@ def build(
         "references": references,
         "triangles": tris,
         "triangle_ids": ids,
+        "frame": frame,
     }
     return Structure(kind="grid", arrays=arrays, layout=(), stats=_stats(
         arrays, res, per_cell, int(refs.size), density=density,

@@ -27,17 +27,21 @@ above it. A long triangle is thus neither counted nor referenced where it does n
 "Highly parallel fast kd-tree construction", Eurographics 2007): the candidates along an
 axis are the ``bins + 1`` boundaries of ``bins`` equal bins spanning the node's references
 (their clipped boxes). Boundary 0 and boundary ``bins`` are moved just outside the
-geometry (by 2^-14 of its magnitude), where they cut off empty space: a reference whose box
+geometry (by 2^-14 of the room cut off plus the node's largest triangle), where they cut
+off empty space: a reference whose box
 merely touched such a plane would otherwise go to the empty side as well (references are
 decided against widened cells, below). N_L counts the references whose box starts in a
 lower bin, N_R those ending in a higher one (``np.bincount`` over all nodes of a level, by
 node, axis and bin), so a level costs O(references) NumPy work, with no per-node loop.
 
 **Which side a reference goes to.** For exact traversal a triangle must be referenced by
-every leaf whose cell, widened by ``accel.geometry.CELL_MARGIN`` (``widen_boxes``), it
-overlaps. A reference goes to each child whose widened bound on the split axis its
-polygon reaches (the polygon's box overlaps it); the polygons are clipped by those widened
-bounds, so a polygon always holds the part of its triangle in the node's widened cell and
+every leaf whose cell, widened by its margin, it overlaps: ``CELL_MARGIN`` (2^-16) of the
+cell's size and of the triangle's own extent (``accel.geometry.reference_margin``, which
+says why that suffices with the traversal's run-time margins). A reference goes to each
+child whose bound on the split axis, widened by that margin (the child's size across the
+plane), its polygon reaches (the polygon's box overlaps it); the polygons are clipped by
+those widened bounds, so a polygon always holds the part of its triangle in the node's
+widened cell and
 the test is exact (``tests/test_kdtree.py`` checks it against the separating-axis test,
 ``accel.geometry.triangles_overlap_boxes``, leaf by leaf). Triangles lying *in* the plane
 (clipped box with min == max == the plane on the split axis) go to one side only, the one
@@ -80,10 +84,15 @@ import numpy as np
 
 from accel.geometry import (
     degenerate_mask,
+    float32_down,
+    float32_up,
+    frame_origin,
     leaf_bits_for,
     leaf_references,
+    local_corners,
+    reference_margin,
+    triangle_extents,
     triangle_vertices,
-    widen_boxes,
 )
 from accel.structure import Structure
 
@@ -105,9 +114,10 @@ DEFAULT_EMPTY_BONUS = 0.2
 DEFAULT_MAX_LEAF_SIZE = 1
 MAX_DEPTH_LIMIT = 64
 ROW_FLOATS = 4
-#: How far outside the geometry an empty-space cut is placed, relative to the magnitude of
-#: the coordinate and the cell: 4 x CELL_MARGIN, so that a triangle touching the geometry's
-#: bound does not reach the empty child's widened cell.
+#: How far outside the geometry an empty-space cut is placed, relative to the room it cuts
+#: off and the largest triangle of the node: 4 x CELL_MARGIN, so that a triangle touching
+#: the geometry's bound is not referenced by the empty child (its margin is CELL_MARGIN of
+#: that child's size and of its own extent, ``accel.geometry.reference_margin``).
 EMPTY_CUT_GAP = 2.0**-14
 #: An empty-space cut must cut off at least this fraction of the node's largest extent:
 #: with the bonus any empty cut "pays", and thinner and thinner slivers next to geometry
@@ -194,7 +204,7 @@ def polygon_bounds(poly: np.ndarray):
     return poly.min(axis=1), poly.max(axis=1)
 
 
-def _best_splits(rlo, rhi, seg, counts, cell_lo, cell_hi, bins, ct, ci, bonus):
+def _best_splits(rlo, rhi, rext, seg, counts, cell_lo, cell_hi, bins, ct, ci, bonus):
     """Best SAH plane of every node: (cost, axis, plane), [K] each (cost inf: none).
 
     Candidates per axis: the interior boundaries of ``bins`` equal bins over the extent of
@@ -205,6 +215,7 @@ def _best_splits(rlo, rhi, seg, counts, cell_lo, cell_hi, bins, ct, ci, bonus):
     offsets = np.cumsum(counts) - counts
     elo = np.maximum(np.minimum.reduceat(rlo, offsets, axis=0), cell_lo)
     ehi = np.minimum(np.maximum.reduceat(rhi, offsets, axis=0), cell_hi)
+    largest = np.maximum.reduceat(rext, offsets)  # the node's largest triangle
     ext = cell_hi - cell_lo
     area = half_area(cell_lo, cell_hi)
     j = np.arange(1, bins)[:, None]
@@ -247,7 +258,7 @@ def _best_splits(rlo, rhi, seg, counts, cell_lo, cell_hi, bins, ct, ci, bonus):
             # cut off more than their gap and MIN_EMPTY_CUT of the node.
             least = MIN_EMPTY_CUT * ext.max(axis=1)
             for low in (True, False):
-                gap = EMPTY_CUT_GAP * (np.abs(lo) + lo - c_lo if low else np.abs(hi) + c_hi - hi)
+                gap = EMPTY_CUT_GAP * (largest + (lo - c_lo if low else c_hi - hi))
                 room = lo - c_lo if low else c_hi - hi
                 plane = (lo - gap if low else hi + gap).astype(np.float32).astype(np.float64)
                 side = (c_hi - plane) if low else (plane - c_lo)
@@ -301,6 +312,18 @@ class _Pool:
         return np.arange(n)
 
 
+def local_frame(tris: np.ndarray):
+    """A plane tree's frame: (frame float32 [3], the corners in it float64 [T, 3, 3], the
+    root cell float32 [2, 3], rounded outward so that it holds every corner; zeros when
+    there are no triangles). See ``accel.geometry.frame_origin``."""
+    frame = frame_origin(tris)
+    tri64 = local_corners(tris, frame)
+    if not tris.shape[0]:
+        return frame, tri64, np.zeros((2, 3), np.float32)
+    return frame, tri64, np.stack([float32_down(tri64.min(axis=(0, 1))),
+                                   float32_up(tri64.max(axis=(0, 1)))]).astype(np.float32)
+
+
 def ranks_in_segments(flags: np.ndarray, seg_first: np.ndarray, seg: np.ndarray) -> np.ndarray:
     """For each element, how many flagged elements precede it in its segment."""
     c = np.cumsum(flags) - flags
@@ -336,11 +359,7 @@ def build(
     tris = triangle_vertices(vertices, np.asarray(faces)[ids]).reshape(-1, 3, 3)
     t_count = ids.shape[0]
     depth_limit = default_max_depth(t_count) if max_depth is None else int(max_depth)
-    tri64 = tris.astype(np.float64)
-    if t_count:
-        bounds = np.stack([tris.min(axis=(0, 1)), tris.max(axis=(0, 1))])
-    else:
-        bounds = np.zeros((2, 3), np.float32)
+    frame, tri64, bounds = local_frame(tris)
 
     # Per node (creation order = breadth first): cell, depth, split (axis, plane, the
     # ids of both children) or leaf (slots in ``references``).
@@ -365,6 +384,7 @@ def build(
     pool = _Pool(tri64)
     rpoly = np.arange(t_count, dtype=np.int64)
     rlo, rhi = tri64.min(axis=1), tri64.max(axis=1)
+    extent = triangle_extents(tri64)
     depth = 0
     while act_ids.shape[0]:
         k = act_ids.shape[0]
@@ -380,7 +400,8 @@ def build(
             remap[cand] = np.arange(cand.size)
             mine = splitting[rseg]
             cost, axis[cand], plane[cand] = _best_splits(
-                rlo[mine], rhi[mine], remap[rseg[mine]], counts[cand], act_lo[cand],
+                rlo[mine], rhi[mine], extent[rtri[mine]], remap[rseg[mine]], counts[cand],
+                act_lo[cand],
                 act_hi[cand], bins, ct, ci, bonus)
             splitting[cand] &= cost < ci * counts[cand]
         # Leaves: their references, in node order, go to ``references``.
@@ -405,8 +426,8 @@ def build(
         lo0, hi0, lo1, hi1 = lo, hi.copy(), lo.copy(), hi
         hi0[rows, ax] = sp
         lo1[rows, ax] = sp
-        upper0 = widen_boxes(lo0, hi0)[1][rows, ax]  # child 0's widened cell ends here
-        lower1 = widen_boxes(lo1, hi1)[0][rows, ax]  # child 1's starts here
+        size0 = (hi0 - lo0)[rows, ax]  # the children's sizes across the plane
+        size1 = (hi1 - lo1)[rows, ax]
         child_ids = next_id + np.arange(2 * m)
         next_id += 2 * m
         split_ids.append(act_ids[nodes])
@@ -425,7 +446,12 @@ def build(
         a = ax[r]
         x_lo, x_hi = rlo[sel, a], rhi[sel, a]
         planar = (x_lo == sp[r]) & (x_hi == sp[r])
-        member = [(x_lo <= upper0[r]) & ~planar, (x_hi >= lower1[r]) & ~planar]
+        # Each child's cell widened, for this reference, by its margin: CELL_MARGIN of the
+        # child's size and of the triangle's extent (accel.geometry.reference_margin).
+        ext = extent[rtri[sel]]
+        upper0 = sp[r] + reference_margin(size0[r], ext)  # child 0's widened cell ends here
+        lower1 = sp[r] - reference_margin(size1[r], ext)  # child 1's starts here
+        member = [(x_lo <= upper0) & ~planar, (x_hi >= lower1) & ~planar]
         # Planar references: the side of lower cost (Wald & Havran).
         n_planar = np.bincount(r[planar], minlength=m)
         n0 = np.bincount(r[member[0]], minlength=m)
@@ -443,7 +469,7 @@ def build(
         poly, count = pool.get(rpoly[sel[both]])
         clipped = []
         for upper, bound in ((True, upper0), (False, lower1)):
-            p, c = clip_polygons(poly, count, a[both], bound[r[both]], upper)
+            p, c = clip_polygons(poly, count, a[both], bound[both], upper)
             clipped.append((pool.add(p, c),) + polygon_bounds(p))
 
         # The next level: the children that hold references, references sorted by child.
@@ -481,7 +507,7 @@ def build(
         depth += 1
 
     return _flatten(
-        tris, ids, bounds, next_id, node_lo, node_hi, node_depth,
+        tris, ids, frame, bounds, next_id, node_lo, node_hi, node_depth,
         (split_ids, split_axis, split_plane, split_child),
         (leaf_ids, leaf_first, leaf_count, leaf_refs),
         params={"bins": bins, "max_leaf_size": max_leaf_size, "max_depth": depth_limit,
@@ -495,7 +521,7 @@ def _cat(parts, dtype, shape=(0,)):
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
 
 
-def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, leaves, *,
+def _flatten(tris, ids, frame, bounds, total, node_lo, node_hi, node_depth, splits, leaves, *,
              params, extra, start_time):
     split_ids, split_axis, split_plane, split_child = splits
     s_ids = _cat(split_ids, np.int64)
@@ -529,13 +555,14 @@ def _flatten(tris, ids, bounds, total, node_lo, node_hi, node_depth, splits, lea
         nodes = np.zeros((1, ROW_FLOATS), np.float32)
         nodes[0, 0] = bounds[1, 0]
         nodes.view(np.int32)[0, 2:4] = [ref[0] if total else -1, -1]
-    return finish_plane_tree("kdtree", nodes, bounds, references, tris, ids, leaf_bits,
+    return finish_plane_tree("kdtree", nodes, frame, bounds, references, tris, ids, leaf_bits,
                              node_lo, node_hi, node_depth, s_ids, l_ids, l_count, total,
                              params, extra, start_time)
 
 
-def finish_plane_tree(kind, nodes, bounds, references, tris, ids, leaf_bits, node_lo, node_hi,
-                      node_depth, s_ids, l_ids, l_count, total, params, extra, start_time):
+def finish_plane_tree(kind, nodes, frame, bounds, references, tris, ids, leaf_bits, node_lo,
+                      node_hi, node_depth, s_ids, l_ids, l_count, total, params, extra,
+                      start_time):
     """The arrays and statistics of a plane tree (kd-tree or BSP tree) once its rows are
     laid out: shared by both builders. ``s_ids``/``l_ids``: the node ids of the interior
     nodes and of the leaves (empty children included), ``l_count`` the leaves' reference
@@ -564,7 +591,8 @@ def finish_plane_tree(kind, nodes, bounds, references, tris, ids, leaf_bits, nod
         # The engine gathers a slot even when no leaf names one: one unused slot.
         references = np.zeros(1, np.int32)
     arrays = {"nodes": nodes, "bounds": bounds.astype(np.float32), "references": references,
-              "triangles": np.ascontiguousarray(tris), "triangle_ids": ids}
+              "triangles": np.ascontiguousarray(tris), "triangle_ids": ids,
+              "frame": np.asarray(frame, np.float32)}
     stats = {
         "build_seconds": time.perf_counter() - start_time,
         **params,

@@ -6,9 +6,11 @@ bounding box; a cell referencing more than ``max_leaf_size`` triangles is split 
 at its centre, until ``max_depth``. A triangle goes to every child it truly overlaps, by
 the exact triangle-box test (separating axes, Akenine-Möller, "Fast 3D triangle-box
 overlap testing", JGT 2001: ``accel.geometry.triangles_overlap_boxes``) against the child
-cube widened by ``accel.geometry.widen_boxes``, so a hit whose computed point strays a few
-ulps out of the triangle (or a ray whose computed plane crossing strays out of the cell)
-still finds the triangle in the cell the traversal visits. Triangles are never clipped or
+cube widened by the pair's margin, ``CELL_MARGIN`` (2^-16) of the cell's size and of the
+triangle's own extent (``accel.geometry.reference_margin``), so a hit whose computed point
+strays a few ulps out of the triangle still finds the triangle in the cell the traversal
+visits (the traversal widens its planes at run time for the rest of the rounding).
+Triangles are never clipped or
 split: one triangle is referenced by every leaf it overlaps.
 
 The build is vectorised over all (cell, triangle) pairs of a tree level, with a loop
@@ -22,18 +24,40 @@ of the candidates on the camel). A stable sort by child groups the surviving pai
 next level. A level costs O(P log P) for its P pairs, and P grows about as fast as N per
 level for a surface mesh, so the build is O(N log N) overall.
 
-Cell geometry is exact and shared with the traversal: the root cube is ``centre +- half``
-evaluated in float32 (the traversal evaluates the same expression) and is split at that
-centre; a child's faces are its parent's faces and the parent's float32 centre, and its
-own centre is the float32 midpoint of those faces. So the planes a ray crosses in the
-traversal are exactly the planes the builder split at; the stored half size is nominal
-(root half / 2^depth).
+Local frame. The tree is built and stored in a local frame whose origin ``frame`` is a
+point of the triangles' bounding box (``accel.geometry.frame_origin``: the one nearest
+the coordinate origin, so a scene around the origin keeps world coordinates): every
+decision (the root cube, the centres, the triangle-box tests, the widening) is taken on
+the exact float64 differences ``triangle - frame`` (``accel.geometry.local_corners``),
+and the engine moves each ray's origin into the same frame (``o - frame``, rounded to
+float32) before the cell tests, whose run-time margins (``jrt.engine.BOX_MARGIN`` of the
+planes' and the origin's magnitudes) then follow the scene's extent and the ray's distance
+from it, not the scene's position; the rounding of ``o - frame`` to float32, 2^-24 of
+``|o - frame|``, is far inside them. The builder's own margins (above) depend only on the
+cells' and the triangles' sizes. With margins of 2^-16 of the coordinates' magnitude in
+world coordinates, the camel (1.4 units across) moved by (1000, -700, 1300) had every
+cell widened by about 0.02, twice the length of its edges, and its build failed with 29M
+references; now it builds as at the origin, wherever it sits, and two camels far apart
+build as two camels. The triangle kernels still read the stored world-coordinate
+triangles, so the hits stay brute force's, bit for bit.
 
-Layout. ``nodes`` float32 [M, 12], 48 bytes per *interior* cell (row 0 is the root,
+Cell geometry is exact and shared with the traversal, in the local frame: the root cube
+is ``centre +- half`` evaluated in float32 (the traversal evaluates the same expression),
+with ``half`` grown until those float32 faces contain every local corner (compared in
+float64: the local corners need not be float32 values), and is split at that centre; a
+child's faces are its parent's faces and the parent's float32 centre, and its own centre
+is the float32 midpoint of those faces. So the planes a ray crosses in the traversal are
+exactly the planes the builder split at; the stored half size is nominal (root half /
+2^depth).
+
+Layout. ``frame`` float32 [3], 12 bytes: the local frame's origin. ``nodes`` holds local
+coordinates (a world point ``p`` is at ``p - frame`` among them); the engine moves every
+ray's origin into the frame.
+``nodes`` float32 [M, 12], 48 bytes per *interior* cell (row 0 is the root,
 which is always split, so a tree of up to ``max_leaf_size`` triangles has depth 1; rows
 are in breadth-first order):
 
-    bytes  0-11  floats 0-2    centre (x, y, z): the three split planes
+    bytes  0-11  floats 0-2    centre (x, y, z): the three split planes, local coordinates
     bytes 12-15  float  3      half the cell's edge (nominal; the root's gives its cube)
     bytes 16-47  floats 4-11   the eight children's references, int32 bit patterns;
                                child k = bx + 2 by + 4 bz, where b_axis = 1 for the upper
@@ -44,8 +68,9 @@ A reference ``r >= 0`` is the row of an interior cell. ``r < 0`` is a leaf,
 ``first .. first + count - 1`` of ``references`` (int32 [R], each a row of
 ``triangles``; a tree without triangles keeps one unused slot, R = 1, for the engine's
 gather). An empty leaf is always ``r = -1`` (first 0, count 0), which the
-traversal skips without a step. ``triangles`` float32 [T, 3, 3] and ``triangle_ids``
-int32 [T] hold the non-degenerate faces in mesh order, as brute force stores them.
+traversal skips without a step. ``triangles`` float32 [T, 3, 3] (world coordinates) and
+``triangle_ids`` int32 [T] hold the non-degenerate faces in mesh order, as brute force
+stores them.
 ``layout``: (("leaf_bits", b),).
 
 Parameters:
@@ -76,11 +101,15 @@ import numpy as np
 from accel.bvh import DEFAULT_INTERSECTION_COST, DEFAULT_TRAVERSAL_COST
 from accel.geometry import (
     degenerate_mask,
+    float32_up,
+    frame_origin,
     leaf_bits_for,
     leaf_references,
+    local_corners,
+    reference_margin,
+    triangle_extents,
     triangle_vertices,
     triangles_overlap_boxes,
-    widen_boxes,
 )
 from accel.structure import Structure
 
@@ -111,34 +140,39 @@ def _check_params(max_leaf_size, max_depth):
                          f"[1, {MAX_DEPTH_LIMIT}], got {max_depth!r}")
 
 
-def root_cube(tris: np.ndarray) -> tuple[np.ndarray, np.float32, np.ndarray, np.ndarray]:
+def root_cube(local: np.ndarray) -> tuple[np.ndarray, np.float32, np.ndarray, np.ndarray]:
     """(centre float32 [3], half float32, lo, hi): the root cube ``centre +- half``.
 
-    lo and hi are the float32 values ``centre - half`` and ``centre + half`` (float32
-    arithmetic, as the traversal evaluates them), which contain every triangle.
+    ``local``: the triangles' corners in the local frame (float64 [T, 3, 3],
+    ``accel.geometry.local_corners``; they need not be float32 values). lo and hi are the
+    float32 values ``centre - half`` and ``centre + half`` (float32 arithmetic, as the
+    traversal evaluates them), which contain every local corner (compared in float64).
     """
-    if tris.shape[0] == 0:
+    if local.shape[0] == 0:
         centre, half = np.zeros(3, np.float32), np.float32(1)
     else:
-        lo = tris.min(axis=(0, 1)).astype(np.float64)
-        hi = tris.max(axis=(0, 1)).astype(np.float64)
+        lo = local.min(axis=(0, 1))
+        hi = local.max(axis=(0, 1))
         centre = ((lo + hi) / 2).astype(np.float32)
         extent = max(float(np.max(hi - centre)), float(np.max(centre - lo)), 0.0)
-        # Slack for the float32 rounding of centre +- half.
+        # Slack for the float32 rounding of half and of centre +- half.
         slack = 4 * float(np.spacing(np.float32(np.abs(centre).max() + extent)))
-        half = np.float32(extent * (1 + 2.0**-20) + slack)
+        half = np.float32(float32_up(extent * (1 + 2.0**-20) + slack))
     while True:
         lo32, hi32 = centre - half, centre + half
-        if tris.shape[0] == 0 or (np.all(lo32 <= tris.min(axis=(0, 1)))
-                                  and np.all(hi32 >= tris.max(axis=(0, 1)))):
+        if local.shape[0] == 0 or (np.all(lo32.astype(np.float64) <= local.min(axis=(0, 1)))
+                                   and np.all(hi32.astype(np.float64)
+                                              >= local.max(axis=(0, 1)))):
             return centre, half, lo32, hi32
         half = np.float32(half * np.float32(1 + 2.0**-10))
 
 
-def _children_pairs(t64, tlo, thi, wlo, whi, parent, tri, splitting):
+def _children_pairs(t64, tlo, thi, own, wlo, whi, parent, tri, splitting):
     """(child cell, triangle) pairs of the next level, grouped by child (8 per parent).
 
-    ``wlo``, ``whi`` [8S, 3]: the widened children of the splitting cells; ``parent``,
+    ``wlo``, ``whi`` [8S, 3]: the children of the splitting cells widened by CELL_MARGIN
+    of their size, to which each pair adds its triangle's ``own`` margin (CELL_MARGIN of
+    its extent: ``accel.geometry.reference_margin``); ``parent``,
     ``tri``: this level's pairs (``parent`` the pair's rank among the splitting cells,
     valid where ``splitting``). A child's widened box is, on each axis, its parent's
     lower or upper widened interval, so the bounding-box tests run per axis and side on
@@ -150,8 +184,9 @@ def _children_pairs(t64, tlo, thi, wlo, whi, parent, tri, splitting):
     parent, tri = parent[splitting], tri[splitting]
     lower = 8 * parent  # child 0: the lower side on every axis
     upper = lower + 7  # child 7: the upper side on every axis
-    side_lo = np.stack([wlo[lower], wlo[upper]], axis=-1)  # [P, 3, 2]
-    side_hi = np.stack([whi[lower], whi[upper]], axis=-1)
+    m = own[tri][:, None, None]
+    side_lo = np.stack([wlo[lower], wlo[upper]], axis=-1) - m  # [P, 3, 2]
+    side_hi = np.stack([whi[lower], whi[upper]], axis=-1) + m
     blo, bhi = tlo[tri][:, :, None], thi[tri][:, :, None]
     touch = (blo <= side_hi) & (bhi >= side_lo)
     contain = (blo >= side_lo) & (bhi <= side_hi)
@@ -171,8 +206,9 @@ def _children_pairs(t64, tlo, thi, wlo, whi, parent, tri, splitting):
     child = 8 * parent[pair] + k
     overlap = sure8[pair, k]
     undecided = np.flatnonzero(~overlap)
+    m = own[tri[pair[undecided]]][:, None]
     overlap[undecided] = triangles_overlap_boxes(
-        t64[tri[pair[undecided]]], wlo[child[undecided]], whi[child[undecided]])
+        t64[tri[pair[undecided]]], wlo[child[undecided]] - m, whi[child[undecided]] + m)
     child, tri = child[overlap], tri[pair[overlap]]
     order = np.argsort(child, kind="stable")
     return child[order], tri[order]
@@ -188,10 +224,13 @@ def build(vertices: np.ndarray, faces: np.ndarray, *,
     tris = triangle_vertices(vertices, np.asarray(faces)[ids])
     t_count = ids.shape[0]
     depth_limit = default_max_depth(t_count) if max_depth is None else int(max_depth)
-    t64 = tris.astype(np.float64)
+    # Every geometric decision is taken in the local frame (exact float64 corners).
+    frame = frame_origin(tris)
+    t64 = local_corners(tris, frame)
     tlo, thi = t64.min(axis=1), t64.max(axis=1)
+    own = reference_margin(0.0, triangle_extents(t64))
 
-    centre, half, lo32, hi32 = root_cube(tris)
+    centre, half, lo32, hi32 = root_cube(t64)
     cell_lo = lo32.astype(np.float64)[None]
     cell_hi = hi32.astype(np.float64)[None]
     pair_cell = np.zeros(t_count, np.int64)
@@ -242,15 +281,16 @@ def build(vertices: np.ndarray, faces: np.ndarray, *,
         bits = CHILD_BITS[None]  # [1, 8, 3]
         child_lo = np.where(bits, c[:, None], plo[:, None]).reshape(-1, 3)
         child_hi = np.where(bits, phi[:, None], c[:, None]).reshape(-1, 3)
-        wlo, whi = widen_boxes(child_lo, child_hi)
+        grow = reference_margin(child_hi - child_lo, 0.0)
+        wlo, whi = child_lo - grow, child_hi + grow
         pair_cell, pair_tri = _children_pairs(
-            t64, tlo, thi, wlo, whi, np.cumsum(split)[pair_cell] - 1, pair_tri,
+            t64, tlo, thi, own, wlo, whi, np.cumsum(split)[pair_cell] - 1, pair_tri,
             split[pair_cell])
         cell_lo, cell_hi = child_lo, child_hi
         level_half = level_half / 2
         depth += 1
 
-    return _flatten(tris, ids, row_centres, row_halves, level_split, level_first,
+    return _flatten(tris, frame, ids, row_centres, row_halves, level_split, level_first,
                     level_count, leaf_lists, leaf_areas, leaf_sizes, interior_areas,
                     max_leaf_size=max_leaf_size, max_depth=depth_limit, depth=depth,
                     forced=forced, degenerate=int((~keep).sum()), start_time=start_time)
@@ -261,7 +301,7 @@ def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
 
 
-def _flatten(tris, ids, row_centres, row_halves, level_split, level_first, level_count,
+def _flatten(tris, frame, ids, row_centres, row_halves, level_split, level_first, level_count,
              leaf_lists, leaf_areas, leaf_sizes, interior_areas, *, max_leaf_size, max_depth,
              depth, forced, degenerate, start_time):
     references = np.concatenate(leaf_lists).astype(np.int32)
@@ -295,7 +335,7 @@ def _flatten(tris, ids, row_centres, row_halves, level_split, level_first, level
     sah = (ct * interior_areas.sum() + ci * (leaf_areas * leaf_sizes).sum()) / root_area
     nonempty = leaf_sizes[leaf_sizes > 0]
     arrays = {"nodes": nodes, "references": references, "triangles": tris,
-              "triangle_ids": ids}
+              "triangle_ids": ids, "frame": np.asarray(frame, np.float32)}
     stats = {
         "build_seconds": time.perf_counter() - start_time,
         "max_leaf_size": int(max_leaf_size),

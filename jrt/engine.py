@@ -141,13 +141,22 @@ def iteration_budget(arrays, n: int, lanes: int) -> int:
 
 
 class Ray(NamedTuple):
-    """One lane's ray, with what every step reuses."""
+    """One lane's ray, with what every step reuses.
 
-    origin: jax.Array  # [L, 3], for the triangle kernels
+    The triangle kernels read ``origin`` in world coordinates (the stored triangles are
+    world coordinates: the hits are brute force's). The box, cell and plane tests read
+    ``origin_axes``, the origin in the structure's local frame (``o - frame``, see
+    ``accel.geometry.frame_origin``; the world origin for a structure without one), and
+    widen their tests by :data:`BOX_MARGIN` of ``origin_scale``, the magnitude to which
+    the rounding of that origin and of the kernel's hit point is relative.
+    """
+
+    origin: jax.Array  # [L, 3], world coordinates, for the triangle kernels
     direction: jax.Array  # [L, 3]
-    origin_axes: tuple  # three [L], the origin by axis, for the box tests
+    origin_axes: tuple  # three [L], the origin by axis in the structure's frame
     inv_direction: tuple  # three [L], 1/d by axis (±inf for a zero component)
     tmax: jax.Array  # [L]
+    origin_scale: tuple  # three [L], |origin_axes| (+ the frame's, see margin_pad)
 
 
 class Step(NamedTuple):
@@ -223,25 +232,61 @@ def _pack_rays(origins, directions, tmax):
     return jnp.concatenate([origins, directions, tmax[:, None]], axis=1)
 
 
-def _lane_rays(rays, ids, n):
+def _lane_rays(rays, ids, n, frame=None, pad=None):
     """The lanes' rays, gathered from the packed rows by ray id (ids >= n: a dummy ray).
 
     Rays are gathered on every iteration rather than carried in the loop state: a row
     gather costs less than the selects that refilling ten carried fields would.
     """
-    return _as_ray(rays[jnp.minimum(ids, n - 1)])
+    return _as_ray(rays[jnp.minimum(ids, n - 1)], frame, pad)
 
 
-def _as_ray(r):
-    """A :class:`Ray` from packed rows [L, 7] (see :func:`_pack_rays`).
+#: Kernels whose rounding grows with the magnitude of the coordinates themselves, not
+#: only with the distance from the ray's origin: the lecture's plane test forms
+#: ``d - N.O`` and the point ``O + tD`` in world coordinates. Watertight and
+#: Möller–Trumbore subtract the origin first (``v - O``), so their errors do not depend
+#: on where the scene sits.
+POSITION_DEPENDENT_KERNELS = frozenset({"plane_barycentric"})
+
+
+def margin_pad(frame, kernel: str):
+    """float32 [3] added to ``|o - frame|`` in every margin, or None.
+
+    For a kernel of :data:`POSITION_DEPENDENT_KERNELS`, ``2 |frame|``: then the margins
+    in the local frame are at least those in world coordinates (``|c| + |o| <= |c -
+    frame| + |o - frame| + 2 |frame|``), as wide as that kernel's rounding there. For the
+    others (and a structure without a frame), None: the margins follow the scene's
+    extent and the ray's distance from it, wherever the scene sits.
+    """
+    if frame is None or kernel not in POSITION_DEPENDENT_KERNELS:
+        return None
+    return 2.0 * jnp.abs(frame)
+
+
+def as_ray(origin, direction, tmax, frame=None, pad=None) -> Ray:
+    """A :class:`Ray` from its parts: ``origin``, ``direction`` [L, 3], ``tmax`` [L] (or
+    None), the structure's ``frame`` [3] (or None) and its :func:`margin_pad` (or None).
 
     ``1/d`` is IEEE division, so every evaluation gives the same bits; a zero component
-    gives ±inf, its sign kept from ±0.0 (the slab tests handle it).
+    gives ±inf, its sign kept from ±0.0 (the slab tests handle it). ``o - frame`` is
+    rounded to float32: its error, 2^-24 of ``|o - frame|``, is far inside the margin
+    (2^-16 of the same magnitude).
     """
     # Box tests run on [L] vectors, one per axis: XLA:CPU vectorises elementwise code
     # along the lanes only when no small trailing axis (of 3) is broadcast.
-    return Ray(r[:, 0:3], r[:, 3:6], tuple(r[:, k] for k in range(3)),
-               tuple(1.0 / r[:, 3 + k] for k in range(3)), r[:, 6])
+    axes = tuple(origin[:, k] for k in range(3))
+    if frame is not None:
+        axes = tuple(axes[k] - frame[k] for k in range(3))
+    scale = tuple(jnp.abs(a) for a in axes)
+    if pad is not None:
+        scale = tuple(scale[k] + pad[k] for k in range(3))
+    return Ray(origin, direction, axes, tuple(1.0 / direction[:, k] for k in range(3)),
+               tmax, scale)
+
+
+def _as_ray(r, frame=None, pad=None):
+    """A :class:`Ray` from packed rows [L, 7] (see :func:`_pack_rays`)."""
+    return as_ray(r[:, 0:3], r[:, 3:6], r[:, 6], frame, pad)
 
 
 def _select(mask, new, old):
@@ -269,6 +314,8 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     triangles = arrays["triangles"]
     triangle_ids = arrays["triangle_ids"]
     lane_index = jnp.arange(lanes, dtype=jnp.int32)
+    frame = arrays.get("frame")
+    pad = margin_pad(frame, kernel)
 
     def fresh():
         """The per-ray part of a lane's state, for a lane that takes a new ray."""
@@ -306,11 +353,14 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     corners = triangles.reshape(-1, 3)
 
     def can_hit(rays):
-        every = _as_ray(rays)  # slices, not a gather of every row (10 ms on 500k rays)
+        # slices, not a gather of every row (10 ms on 500k rays)
+        every = _as_ray(rays, frame, pad)
         if traversal.entry is not None:
             return traversal.entry(arrays, every, every.tmax + tie_window(every.tmax))
-        near, far = box_interval(every, tuple(jnp.min(corners, 0)),
-                                 tuple(jnp.max(corners, 0)))
+        lo, hi = jnp.min(corners, 0), jnp.max(corners, 0)
+        if frame is not None:  # rounded by 2^-24 of |corner - frame|: inside the margin
+            lo, hi = lo - frame, hi - frame
+        near, far = box_interval(every, tuple(lo), tuple(hi))
         return jnp.where((near <= far) & (near <= every.tmax), 0, ENTRY_MISS)
 
     # One int32 output, the miss folded in: as two outputs (a flag and the start), XLA:CPU
@@ -338,7 +388,7 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         **fresh(),
         "ray_id": first_rays,
         "renewed": jnp.ones(lanes, bool),
-        "trav": start(_lane_rays(rays, first_rays, n), first_rays),
+        "trav": start(_lane_rays(rays, first_rays, n, frame, pad), first_rays),
         # max_push - 1 spare slots, so that a push of max_push entries from the top slot
         # stays inside the array (its overflow is flagged, not written out of bounds).
         "stack": jnp.zeros((lanes, stack_size + max_push - 1, width), jnp.int32),
@@ -445,7 +495,7 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
 
     def body(s):
         s = refill(s)
-        ray = _lane_rays(rays, s["ray_id"], n)
+        ray = _lane_rays(rays, s["ray_id"], n, frame, pad)
         s["trav"] = _select(s["renewed"], start(ray, s["ray_id"]), s["trav"])
         # Lanes step far more often than they test (5-15 steps per ray on the camel
         # against 0.5-1.6 tests), but a phase costs all lanes whichever lanes use it.
@@ -563,8 +613,13 @@ def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel:
 #: magnitude of its corners and of the ray's origin, and the interval by 2^-16 of t, so
 #: that it also absorbs the rounding of the triangle kernels, whose hit point (the
 #: textbook kernel computes it as O + tD) may stray from the triangle by a few ulps of
-#: those magnitudes. A box is never culled while a kernel could still report a hit in it,
-#: which keeps every structure's hits equal to brute force's.
+#: those magnitudes. The magnitudes are taken in the structure's local frame
+#: (``Ray.origin_axes``, ``accel.geometry.frame_origin``): the scene's extent and the
+#: ray's distance from it, not where the scene sits (``margin_pad`` restores the world
+#: magnitude for the one kernel whose rounding depends on it). A box is never culled while
+#: a kernel could still report a hit in it, which keeps every structure's hits equal to
+#: brute force's; the builders cover the rest, the part of a kernel's rounding that grows
+#: with the triangle's own size (``accel.geometry.reference_margin``).
 BOX_MARGIN = 2.0**-16
 
 
@@ -580,7 +635,7 @@ def box_interval(ray: Ray, lo, hi):
     near, far = [], []
     for axis in range(3):
         o, inv = ray.origin_axes[axis], ray.inv_direction[axis]
-        size = jnp.abs(o)
+        size = ray.origin_scale[axis]
         t0 = (lo[axis] - BOX_MARGIN * (jnp.abs(lo[axis]) + size) - o) * inv
         t1 = (hi[axis] + BOX_MARGIN * (jnp.abs(hi[axis]) + size) - o) * inv
         lo_t, hi_t = jnp.minimum(t0, t1), jnp.maximum(t0, t1)

@@ -42,17 +42,28 @@ visited so far. A hit found in this cell but lying beyond it (a triangle referen
 several cells) does not end the walk early: the walk goes on until it has passed the hit
 point, so a nearer triangle in a cell in between is still tested.
 
+**Local frame**: the grid row holds coordinates relative to the grid's ``frame`` (a point
+of the triangles' box, ``accel.geometry.frame_origin``), and the engine hands every step
+the ray origin moved into it (``ray.origin_axes = o - frame``, rounded to float32, and
+``ray.origin_scale``, the magnitude its margins use); the triangle kernels still read the
+world-coordinate triangles and origin. All the walk's arithmetic below is in the frame.
+
 **Why the hits are brute force's**: the exit distances carry a relative error of a few
 float32 ulps, so the walk follows the ray through every cell it pierces, except that where
 two crossings (or the point located after a leap) lie within those ulps of a cell face it
 may take a neighbour for the cell. The part of the ray it then skips lies within a few
-ulps of the ray's travel (and of the origin's coordinates) of a visited cell, and every
-cell references the triangles within CELL_MARGIN = 2^-16 of the grid's magnitude of its
-box (``accel.grid``). With errors of at most about 8 ulps (2^-21) of the travel, that
-covers rays whose origin and hits lie within 2^-16 / 2^-21 = 32 times the grid's largest
-coordinate of the coordinate origin; the camera and incoherent ray sets stay within a few
-scene sizes. Beyond that, a ray grazing a cell edge far from its origin could in principle
-skip a triangle's corner in the cell it misses.
+ulps of the ray's travel (and of the origin's local coordinates, the rounding of ``o -
+frame`` included: 2^-24 of ``|o - frame|``) of a visited cell, and every cell references
+the triangles within CELL_MARGIN = 2^-16 of the grid's local magnitude (its largest
+local corner coordinate, at least half its largest extent) of its box (``accel.grid``).
+With errors of at most about 8 ulps (2^-21) of the travel, that covers rays whose origin
+and hits lie within 2^-16 / 2^-21 = 32 times the grid's local magnitude of the frame (at
+least 16 times the grid's largest extent around a point of its box), wherever it sits; the
+camera and incoherent ray sets stay within a few scene sizes. Beyond that, a ray grazing
+a cell edge far from its origin could in principle skip a triangle's corner in the cell
+it misses. (This holds for the kernels whose rounding is relative to ``|v - o|``,
+watertight and Möller–Trumbore; the plane-and-barycentric kernel's rounding grows with
+the world coordinates, see ``accel.grid``.)
 """
 
 from __future__ import annotations
@@ -102,8 +113,8 @@ def _leap(ray, lo, hi, size, inv_size, n, index, k):
         # The grid's own faces are the box's, widened as box_interval widens them: the
         # last plane lo + n * size may fall an ulp short of hi (a ray running along the
         # box's face must not leave early), and a flat axis has size 0.
-        top = hi[axis] + BOX_MARGIN * (jnp.abs(hi[axis]) + jnp.abs(o))
-        bottom = lo[axis] - BOX_MARGIN * (jnp.abs(lo[axis]) + jnp.abs(o))
+        top = hi[axis] + BOX_MARGIN * (jnp.abs(hi[axis]) + ray.origin_scale[axis])
+        bottom = lo[axis] - BOX_MARGIN * (jnp.abs(lo[axis]) + ray.origin_scale[axis])
         plane = jnp.where(m >= n[axis], jnp.maximum(plane, top), plane)
         plane = jnp.where(m <= 0, jnp.minimum(plane, bottom), plane)
         bound.append(jnp.where(up[axis], top, bottom))
@@ -139,23 +150,29 @@ def _start(arrays, ray):
     return fresh, fresh, fresh, jnp.zeros(ray.tmax.shape, jnp.float32)
 
 
-def _lane_ray(origin, direction, tmax):
-    """The lane's :class:`jrt.engine.Ray` rebuilt from its origin and direction: inside a
-    conditional, two [L, 3] operands rather than ten (1/d is recomputed, to the same
-    bits: IEEE division is correctly rounded)."""
+def _lane_ray(origin, direction, scale):
+    """The lane's :class:`jrt.engine.Ray` rebuilt from its origin in the grid's frame, its
+    direction and its margin scale: inside a conditional, three [L, 3] operands rather
+    than thirteen (1/d is recomputed, to the same bits: IEEE division is correctly
+    rounded)."""
     inv = 1.0 / direction
     return Ray(origin, direction, tuple(origin[:, a] for a in range(3)),
-               tuple(inv[:, a] for a in range(3)), tmax)
+               tuple(inv[:, a] for a in range(3)), None, tuple(scale[:, a] for a in range(3)))
 
 
-def _entry_of(row, origin, direction):
-    ray = _lane_ray(origin, direction, None)
+def _local(ray):
+    """The lane's origin in the grid's frame and its margin scale, [L, 3] each."""
+    return jnp.stack(ray.origin_axes, axis=1), jnp.stack(ray.origin_scale, axis=1)
+
+
+def _entry_of(row, origin, direction, scale):
+    ray = _lane_ray(origin, direction, scale)
     lo, hi, _, inv_size, n = _grid_row(row)
     return _entry(ray, lo, hi, inv_size, n)
 
 
-def _leap_of(row, origin, direction, index, k):
-    ray = _lane_ray(origin, direction, None)
+def _leap_of(row, origin, direction, scale, index, k):
+    ray = _lane_ray(origin, direction, scale)
     lo, hi, size, inv_size, n = _grid_row(row)
     return _leap(ray, lo, hi, size, inv_size, n, index, k)
 
@@ -166,7 +183,8 @@ def _step(arrays, ray, state, best_t, top, has_top):
     ix, iy, iz, te = state
     fresh = ix < 0
     # A fresh lane's entry (computed once, skipped when no lane is fresh).
-    *entry, inside = computed_once(jnp.any(fresh), _entry_of, row, ray.origin, ray.direction)
+    origin, scale = _local(ray)
+    *entry, inside = computed_once(jnp.any(fresh), _entry_of, row, origin, ray.direction, scale)
     ix, iy, iz, te = (jnp.where(fresh, a, b) for a, b in zip(entry, (ix, iy, iz, te),
                                                               strict=True))
     live = (inside | ~fresh) & (best_t > jnp.maximum(te, 0.0) * _SHRINK)
@@ -175,8 +193,8 @@ def _step(arrays, ray, state, best_t, top, has_top):
     first = starts[cell]
     count = starts[cell + 1] - first
     k = jnp.maximum(arrays["skip"][cell].astype(jnp.int32) - 1, 0)
-    jx, jy, jz, tjump, out = computed_once(jnp.any(live), _leap_of, row, ray.origin,
-                                           ray.direction, (ix, iy, iz), k)
+    jx, jy, jz, tjump, out = computed_once(jnp.any(live), _leap_of, row, origin,
+                                           ray.direction, scale, (ix, iy, iz), k)
     # tjump = inf (a ray with no direction) makes the bound test true.
     finished = ~live | out | (best_t <= jnp.maximum(tjump, 0.0) * _SHRINK)
     zeros = jnp.zeros(ix.shape, bool)

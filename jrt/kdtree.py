@@ -24,9 +24,11 @@ def _crossings(ray, rows):
     axis = fields[:, 0]
     ox, oy, oz = ray.origin_axes
     ix, iy, iz = ray.inv_direction
+    sx, sy, sz = ray.origin_scale
     o = jnp.where(axis == 0, ox, jnp.where(axis == 1, oy, oz))
     inv = jnp.where(axis == 0, ix, jnp.where(axis == 1, iy, iz))
-    delta = BOX_MARGIN * (jnp.abs(split) + jnp.abs(o))
+    scale = jnp.where(axis == 0, sx, jnp.where(axis == 1, sy, sz))
+    delta = BOX_MARGIN * (jnp.abs(split) + scale)
     t_a = (split - delta - o) * inv
     t_b = (split + delta - o) * inv
     return t_a, t_b, jnp.signbit(inv), fields[:, 1], fields[:, 2]

@@ -7,15 +7,19 @@ three mid-planes, within the cell's own interval [t0, t1]. Revelles steps from c
 child by the exit plane; here the eight children's intervals are formed at once and
 visited in order of their entry, which handles the overlaps below the same way.
 
-Per axis a, with ``g = centre_a - o_a`` and ``delta = BOX_MARGIN (|centre_a| + |o_a|)``,
-the ray is within ``delta`` of the mid-plane for t between ``(g - delta)/d_a`` and
-``(g + delta)/d_a``; call the smaller F_a (the far half may be entered from then) and
-the larger N_a (the near half is certainly left by then). The half the ray comes from
-(the lower one if d_a > 0) has the interval [-inf, N_a] on that axis, the other half
-[F_a, inf]; a child's interval is the intersection of its three halves' and [t0, t1].
-Neighbouring children thus overlap by the engine's margin around every plane (as
-``jrt.engine.box_interval`` widens a box by BOX_MARGIN of its corners' and the origin's
-magnitude), and a ray lying near a plane visits both halves.
+The cells are in the tree's local frame (``accel.octree``), and so is the origin the
+steps read: ``o = ray.origin_axes``, the world origin minus ``frame``, with the
+magnitude ``s = ray.origin_scale`` (``|o|``, plus ``jrt.engine.margin_pad`` for a kernel
+whose rounding depends on the world position). Per axis a, with ``g = centre_a - o_a``
+and ``delta = BOX_MARGIN (|centre_a| + s_a)``, the ray is within ``delta`` of the
+mid-plane for t between ``(g - delta)/d_a`` and ``(g + delta)/d_a``; call the smaller
+F_a (the far half may be entered from then) and the larger N_a (the near half is
+certainly left by then). The half the ray comes from (the lower one if d_a > 0) has the
+interval [-inf, N_a] on that axis, the other half [F_a, inf]; a child's interval is the
+intersection of its three halves' and [t0, t1]. Neighbouring children thus overlap by
+the engine's margin around every plane (as ``jrt.engine.box_interval`` widens a box by
+BOX_MARGIN of its corners' and the origin's magnitude), and a ray lying near a plane
+visits both halves.
 
 Zero direction components, explicitly: 1/d is ±inf, signed as the zero. If the origin
 is off the plane by more than delta, (g ± delta) * inf are two infinities of one sign:
@@ -105,7 +109,7 @@ def _plan(ray, rows, t0, t1, last, best_t):
     for a in range(3):
         o, inv, c = ray.origin_axes[a], ray.inv_direction[a], row[a]
         gap = c - o
-        delta = BOX_MARGIN * (jnp.abs(c) + jnp.abs(o))
+        delta = BOX_MARGIN * (jnp.abs(c) + ray.origin_scale[a])
         p = (gap - delta) * inv
         q = (gap + delta) * inv
         far = jnp.minimum(p, q)

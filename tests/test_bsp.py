@@ -108,7 +108,9 @@ def sample_points(triangles, rng, random_points=2):
 
 def check_point_location(structure, tree, rng, limit=None):
     """Every leaf that a point of a triangle reaches (closed half-spaces) references it."""
-    triangles = np.asarray(structure["triangles"], np.float64)
+    # The cells are in the structure's frame: so are the triangles compared with them.
+    triangles = (np.asarray(structure["triangles"], np.float64)
+                 - np.asarray(structure["frame"], np.float64))
     if len(triangles) == 0:
         return
     if limit is not None and limit < len(triangles):

@@ -12,6 +12,8 @@ docstring) and compared with what the builder reports in ``stats``:
   float32), contains the exact float32 bound of the triangles of its subtree and lies
   within one quantisation step of it; the frame is the union of the children's boxes and
   its scale the smallest power of two covering it in 255 steps;
+- ``frame`` is the point of the triangles' box nearest the origin, and every box is in that frame
+  (the triangles' exact boxes minus ``frame``, rounded outward to float32);
 - ``triangle_ids`` is a permutation of the non-degenerate faces and ``triangles`` holds
   their corners;
 - the counts, depth, leaf sizes, SAH cost and bytes of ``stats``.
@@ -76,6 +78,7 @@ def decode(structure) -> dict:
     """
     nodes = np.asarray(structure["nodes"])
     triangles = np.asarray(structure["triangles"])
+    frame = np.asarray(structure["frame"])
     leaf_bits = structure.layout_value("leaf_bits")
     width = structure.layout_value("width")
     bound_words = -(-6 * width // 4)  # one byte a bound, six a child
@@ -131,8 +134,14 @@ def decode(structure) -> dict:
         order = np.argsort(first[full])  # non-empty leaves tile the rows in this order
         starts = first[full][order]
         rows, slots = leaf_row[full][order], leaf_slot[full][order]
-        lo[rows, slots] = np.minimum.reduceat(triangles.min(axis=1), starts)
-        hi[rows, slots] = np.maximum.reduceat(triangles.max(axis=1), starts)
+        # Each triangle's exact box in the local frame, rounded outward to float32.
+        local = triangles.astype(np.float64) - frame.astype(np.float64)
+        tri_lo, tri_hi = local.min(axis=1), local.max(axis=1)
+        lo32, hi32 = tri_lo.astype(np.float32), tri_hi.astype(np.float32)
+        lo32 = np.where(lo32 > tri_lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+        hi32 = np.where(hi32 < tri_hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+        lo[rows, slots] = np.minimum.reduceat(lo32, starts)
+        hi[rows, slots] = np.maximum.reduceat(hi32, starts)
     below[leaf_row, leaf_slot] = count
     for d in range(int(depth.max()), 0, -1):
         rows = np.flatnonzero(depth == d)
@@ -153,12 +162,17 @@ def check_bvh(structure, vertices, faces, **params):
     vertices = np.asarray(vertices, np.float32)
     faces = np.asarray(faces)
     assert structure.kind == "bvh"
-    assert set(structure.arrays) == {"nodes", "triangles", "triangle_ids"}
+    assert set(structure.arrays) == {"nodes", "triangles", "triangle_ids", "frame"}
     stats = structure.stats
     assert set(stats) == STAT_KEYS
     nodes, triangles, ids = (np.asarray(structure[k]) for k in
                              ("nodes", "triangles", "triangle_ids"))
     assert triangles.dtype == np.float32 and ids.dtype == np.int32
+    # The local frame: the point of the triangles' bounding box nearest the origin.
+    corners = triangles.reshape(-1, 3)
+    expected_frame = (np.minimum(np.maximum(0, corners.min(axis=0)), corners.max(axis=0))
+                      if len(corners) else np.zeros(3)).astype(np.float32)
+    np.testing.assert_array_equal(structure["frame"], expected_frame)
 
     # The triangles: a permutation of the non-degenerate faces, with their corners.
     keep = expected_ids(vertices, faces)
@@ -268,7 +282,8 @@ def check_bvh(structure, vertices, faces, **params):
     assert stats["bins"] == params["bins"]
     assert stats["max_leaf_size"] == params["max_leaf_size"]
     assert stats["build_seconds"] >= 0
-    assert stats["bytes"] == nodes.nbytes + triangles.nbytes + ids.nbytes == structure.nbytes
+    stored = nodes.nbytes + triangles.nbytes + ids.nbytes + 12  # 12: the frame
+    assert stats["bytes"] == stored == structure.nbytes
     return tree
 
 

@@ -266,7 +266,8 @@ def fixed_shape_bvh(structure: Structure) -> Structure:
     ids = np.full(CAP, -1, np.int32)
     ids[:t] = structure["triangle_ids"]
     return Structure(kind="bvh", arrays={"nodes": padded, "triangles": triangles,
-                                         "triangle_ids": ids},
+                                         "triangle_ids": ids,
+                                         "frame": np.asarray(structure["frame"])},
                      layout=(("leaf_bits", LEAF_BITS), ("width", width)),
                      stats=structure.stats)
 
@@ -751,7 +752,8 @@ def test_a_cycle_raises_instead_of_looping():
     o, d = np.float32([[0.5, 0.5, -1], [0.2, 0.3, -1]]), np.float32([[0, 0, 1], [0, 0, 1]])
     for query in (jrt.closest_hit, jrt.occluded):
         with pytest.raises(TraversalError, match="iteration budget"):
-            query(cycle, o, d)
+            # A stack deep enough that the pushes of the cycle meet the budget first.
+            query(cycle, o, d, stack_size=4096)
 
 
 def test_iteration_budget_bounds_a_valid_traversal():

@@ -1,21 +1,25 @@
 """The uniform grid (``accel/grid.py`` built, ``jrt/grid.py`` traced).
 
-Builder: the arrays decoded against the documented layout (grid row, compressed-row cell
-lists, skip distances); the reference rule checked by an independent dense test (every
-(cell, triangle) pair, the cell boxes rebuilt from the documented planes and widened, then
-the shared exact triangle-box test): a cell references exactly the triangles that touch its
-widened box; the skip distances against a brute-force Chebyshev distance; the resolution
-against the closed forms of the density rule (3-D, planar, thin, clamped); statistics
-recomputed; parameter errors; empty, one-triangle, all-degenerate and flat meshes.
+Builder: the arrays decoded against the documented layout (grid row in the local frame,
+the frame, compressed-row cell lists, skip distances); the reference rule checked by an
+independent dense test (every (cell, triangle) pair, the cell boxes rebuilt from the
+documented planes and widened, then the shared exact triangle-box test on the corners in
+the frame): a cell references exactly the triangles that touch its widened box; the skip
+distances against a brute-force Chebyshev distance; the resolution against the closed
+forms of the density rule (3-D, planar, thin, clamped); statistics recomputed; parameter
+errors; empty, one-triangle, all-degenerate and flat meshes; the 19k camel moved 1e3 and
+1e5 times its size away, or scaled by 1e-4 and 1e4, builds the grid (cells, about the
+references) it builds at the origin.
 
 Traversal: the same hits as brute force, bit for bit, with every kernel: on the camel (20k
-camera and 20k incoherent rays, closest hit and ``occluded``),
-a hit found in a cell but lying beyond it, and
-random soups (hypothesis) whose axis-aligned flat triangles are moved exactly onto cell
-faces (some of them spanning many cells), with rays from origins exactly on cell faces and
-at grid corners, rays running inside a cell face (a ±0.0 direction component), and the
-soups' own axis-parallel rays. Soup grids are padded to fixed shapes so that every example
-runs the same compiled kernels.
+camera and 20k incoherent rays, closest hit and ``occluded``), a hit found in a cell but
+lying beyond it, and random soups (hypothesis) whose axis-aligned flat triangles are moved
+exactly onto cell faces (some of them spanning many cells), with rays from origins exactly
+on cell faces and at grid corners, rays running inside a cell face (a ±0.0 direction
+component), and the soups' own axis-parallel rays. Soup grids are padded to fixed shapes so
+that every example runs the same compiled kernels. With the watertight and Möller–Trumbore
+kernels (whose rounding does not grow with the distance from the coordinate origin): on
+the moved and scaled camels and on two camels 1e3 apart, far from the origin.
 """
 
 from __future__ import annotations
@@ -40,8 +44,17 @@ from test_bvh_traversal import (
 import accel
 import jrt
 from accel import grid
-from accel.geometry import CELL_MARGIN, triangles_overlap_boxes, widen_boxes
+from accel.geometry import (
+    CELL_MARGIN,
+    float32_down,
+    float32_up,
+    frame_origin,
+    local_corners,
+    triangles_overlap_boxes,
+    widen_boxes,
+)
 from accel.structure import Structure
+from jrt.raysets import incoherent_set
 from jrt.trace import as_numpy
 
 STAT_KEYS = {
@@ -76,7 +89,8 @@ def expected_ids(vertices, faces) -> np.ndarray:
 
 
 def planes_of(structure) -> list[np.ndarray]:
-    """Per axis, the float32 planes lo + m * size, m = 0..n (as documented)."""
+    """Per axis, the float32 planes lo + m * size, m = 0..n (as documented), in the grid's
+    frame."""
     g = np.asarray(structure["grid"])
     res = g.view(np.int32)[12:15]
     return [np.float32(g[a]) + np.arange(res[a] + 1, dtype=np.float32) * np.float32(g[6 + a])
@@ -112,9 +126,11 @@ def decode(structure) -> dict:
     assert np.all(rows[1:][same] > rows[:-1][same]), "a cell's rows are not ascending"
     skip = np.asarray(structure["skip"])
     assert skip.dtype == np.int8 and skip.shape == (cells,)
+    frame = np.asarray(structure["frame"])
+    assert frame.dtype == np.float32 and frame.shape == (3,)
     assert structure.layout == ()
     return {"res": res, "cells": cells, "counts": counts, "cell": cell, "rows": rows,
-            "skip": skip, "lo": lo, "hi": hi}
+            "skip": skip, "lo": lo, "hi": hi, "frame": frame}
 
 
 def widened_cells(structure, cells: np.ndarray):
@@ -131,12 +147,27 @@ def widened_cells(structure, cells: np.ndarray):
     return wlo - scale, whi + scale
 
 
+def world_planes(planes, frame) -> list[np.ndarray]:
+    """Per axis, the world positions (float32) of those of the frame's ``planes`` that
+    ``plane + frame`` represents exactly: a point there lies exactly on the plane once the
+    engine moves it into the frame (``o - frame`` is then exact). All of them, rounded,
+    on an axis where none is exact (every one is where the frame is 0)."""
+    frame = np.asarray(frame, np.float32).astype(np.float64)
+    out = []
+    for axis, p in enumerate(planes):
+        world = (p.astype(np.float64) + frame[axis]).astype(np.float32)
+        exact = world.astype(np.float64) - frame[axis] == p
+        out.append(world[exact] if exact.any() else world)
+    return out
+
+
 def check_references(structure, cells=None):
     """Dense test: each of ``cells`` (all by default) references exactly the triangles
-    that touch its widened box (every pair tested: a bounds test, then the exact one)."""
+    that touch its widened box (every pair tested: a bounds test, then the exact one),
+    both in the grid's frame."""
     layout = decode(structure)
     cells = np.arange(layout["cells"]) if cells is None else np.unique(cells)
-    tris = np.asarray(structure["triangles"], np.float64)
+    tris = local_corners(structure["triangles"], structure["frame"])
     wlo, whi = widened_cells(structure, cells)
     tlo, thi = tris.min(axis=1), tris.max(axis=1)
     near = np.all((tlo[None] <= whi[:, None]) & (thi[None] >= wlo[:, None]), axis=2)
@@ -182,18 +213,24 @@ def check_structure(structure, vertices, faces):
     layout = decode(structure)
     assert structure.kind == "grid"
     assert set(structure.arrays) == {"grid", "cell_start", "skip", "references", "triangles",
-                                     "triangle_ids"}
+                                     "triangle_ids", "frame"}
     keep = expected_ids(vertices, faces)
     np.testing.assert_array_equal(structure["triangle_ids"], keep)
     assert structure["triangle_ids"].dtype == np.int32
     triangles = np.asarray(structure["triangles"])
     assert triangles.dtype == np.float32
     np.testing.assert_array_equal(triangles, vertices[faces[keep]].reshape(-1, 3, 3))
+    # The frame, and the grid box in it: the local corners' bounds rounded outward.
+    np.testing.assert_array_equal(layout["frame"], frame_origin(triangles))
     if len(keep):
-        np.testing.assert_array_equal(layout["lo"], triangles.min(axis=(0, 1)))
-        np.testing.assert_array_equal(layout["hi"], triangles.max(axis=(0, 1)))
+        local = local_corners(triangles, layout["frame"])
+        np.testing.assert_array_equal(layout["lo"], float32_down(local.min(axis=(0, 1))))
+        np.testing.assert_array_equal(layout["hi"], float32_up(local.max(axis=(0, 1))))
+        assert np.all(layout["lo"] <= local.min(axis=(0, 1)))
+        assert np.all(layout["hi"] >= local.max(axis=(0, 1)))
     else:
         np.testing.assert_array_equal(structure["grid"][0:6], 0)
+        np.testing.assert_array_equal(layout["frame"], 0)
         np.testing.assert_array_equal(layout["res"], 1)
         np.testing.assert_array_equal(structure["references"], [0])
     stats = structure.stats
@@ -354,8 +391,8 @@ def test_tiny_meshes_build_and_trace(name):
     # A quarter: from the box's corners and faces (z = 0.5 is the flat mesh's plane),
     # axis-parallel with ±0.0 components, or grazing the plane z = 0.5.
     special = np.arange(N_RAYS // 4)
-    g = s["grid"]
-    corners = np.float32([[g[0], g[1], g[2]], [g[3], g[4], g[5]], [0, 0, 0.5], [1, 2, 0.5]])
+    g, frame = s["grid"], s["frame"]
+    corners = np.float32([g[0:3] + frame, g[3:6] + frame, [0, 0, 0.5], [1, 2, 0.5]])
     origins[special] = corners[special % 4]
     origins[special[::3], 0] = rng.uniform(-0.5, 3.5, special[::3].size)
     d = signed_zeros(rng, (special.size, 3))
@@ -467,7 +504,7 @@ def test_a_hit_beyond_its_cell_does_not_end_the_walk():
     # hit at t = 9, before face 1), and by every cell up to x = 9 (it is tested again).
     layout = decode(s)
     g = s["grid"]
-    index = np.floor((origins[0] - g[0:3]) * g[9:12]).astype(int)
+    index = np.floor((origins[0] - s["frame"] - g[0:3]) * g[9:12]).astype(int)
     start_cell = index[0] + layout["res"][0] * (index[1] + layout["res"][1] * index[2])
     assert 0 in layout["rows"][layout["cell"] == start_cell]
     _, count = jrt.closest_hit(s, origins[:2], directions[:2], counters=True)
@@ -475,45 +512,192 @@ def test_a_hit_beyond_its_cell_does_not_end_the_walk():
 
 
 # ---------------------------------------------------------------------------------------------
+# Far from the coordinate origin, and scaled: the local frame
+# ---------------------------------------------------------------------------------------------
+
+#: (offset, scale) of the 19k camel, applied in float64, then rounded to float32. Moved,
+#: the camel lies 1e3 and 1e5 times its size from the coordinate origin (at 1e5 a float32
+#: ulp is 2^-7, and about 30 % of its triangles round to degenerate ones).
+TRANSFORMS = {
+    "moved 1e3": ((1000.0, -700.0, 1300.0), 1.0),
+    "moved 1e5": ((1e5, -7e4, 1.3e5), 1.0),
+    "scaled 1e-4": ((0.0, 0.0, 0.0), 1e-4),
+    "scaled 1e4": ((0.0, 0.0, 0.0), 1e4),
+}
+#: Two camels 1e3 apart along x, far from the coordinate origin (a long thin grid: 512
+#: cells on x, clamped, a few on y and z).
+TWO_CAMELS = ((1000.0, -700.0, 1300.0), (2000.0, -700.0, 1300.0))
+FAR_RAYS = 1024
+#: A kernel whose rounding is relative to |v - o|, wherever the scene sits (the
+#: plane-and-barycentric kernel's grows with the world coordinates: see ``accel.grid``);
+#: watertight runs on the far camels under every structure in tests/test_anywhere.py.
+FAR_KERNELS = ("moller_trumbore",)
+
+
+def transformed(vertices, offset, scale) -> np.ndarray:
+    return (np.asarray(vertices, np.float64) * scale + np.asarray(offset)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def camel19k():
+    if not jrt.data.has_camel("camel-19k"):
+        pytest.skip("camel-19k.off not found (set JRT_DATA)")
+    return jrt.load_mesh(jrt.camel_path("camel-19k"))
+
+
+@pytest.fixture(scope="module")
+def far_scenes(camel19k):
+    """name -> (vertices, faces, origins, directions): the transformed camels, with
+    incoherent rays aimed at them, and the two camels, with rays aimed at each and rays
+    from around each aimed at the other (a travel of 1e3)."""
+    faces = np.asarray(camel19k.faces)
+    scenes = {}
+    for seed, (name, (offset, scale)) in enumerate(TRANSFORMS.items()):
+        vertices = transformed(camel19k.vertices, offset, scale)
+        scenes[name] = (vertices, faces, *incoherent_set(vertices, FAR_RAYS, seed=seed))
+    a, b = (transformed(camel19k.vertices, offset, 1.0) for offset in TWO_CAMELS)
+    quarter = FAR_RAYS // 4
+    rng = np.random.default_rng(7)
+    origins, directions = [], []
+    for k, (here, there) in enumerate(((a, b), (b, a))):
+        o, d = incoherent_set(here, quarter, seed=10 + k)
+        origins += [o, o]
+        target = there[rng.integers(0, len(there), quarter)].astype(np.float64)
+        across = target - o
+        directions += [d, (across / np.linalg.norm(across, axis=1, keepdims=True))]
+    scenes["two camels"] = (np.concatenate([a, b]), np.concatenate([faces, faces + len(a)]),
+                            np.concatenate(origins).astype(np.float32),
+                            np.concatenate(directions).astype(np.float32))
+    return scenes
+
+
+@pytest.fixture(scope="module")
+def far_grids(far_scenes):
+    return {name: accel.build("grid", v, f) for name, (v, f, _, _) in far_scenes.items()}
+
+
+@pytest.mark.camel
+@pytest.mark.parametrize("name", list(TRANSFORMS))
+def test_far_or_scaled_camel_builds_the_grid_of_the_origin(camel19k, far_scenes, far_grids,
+                                                           name):
+    """Moved 1e3 or 1e5 times its size away, or scaled by 1e-4 or 1e4, the camel builds the
+    grid it builds at the origin: the same cells, about as many references (a margin that
+    grew with the distance from the coordinate origin multiplied them: 6x at 1e3 on the
+    69k camel), and the layout and the reference rule hold in the grid's frame."""
+    offset, scale = TRANSFORMS[name]
+    vertices, faces = far_scenes[name][:2]
+    s = far_grids[name]
+    if scale == 1.0:  # the same float32 mesh, moved back to the origin (exactly)
+        base = (vertices.astype(np.float64) - offset).astype(np.float32)
+        np.testing.assert_array_equal(base.astype(np.float64) + offset, vertices)
+        assert np.all(np.abs(s["frame"]) >= 0.5 * np.abs(offset))
+    else:
+        base = camel19k.vertices
+        np.testing.assert_array_equal(s["frame"], 0)  # the camel's box holds the origin
+    at_origin = accel.build("grid", base, faces)
+    assert s.num_triangles == at_origin.num_triangles
+    assert s.stats["resolution"] == at_origin.stats["resolution"]
+    for key in ("references", "non_empty_cells"):
+        assert s.stats[key] == pytest.approx(at_origin.stats[key], rel=0.02), key
+    # The grid row holds local coordinates: of the scene's size, not of its position.
+    g = s["grid"].astype(np.float64)
+    extent = g[3:6] - g[0:3]
+    assert np.abs(g[0:6]).max() <= 1.01 * extent.max()
+    np.testing.assert_allclose(extent, (at_origin["grid"][3:6] - at_origin["grid"][0:3])
+                               * scale, rtol=1e-3)
+    layout = check_structure(s, vertices, faces)
+    rng = np.random.default_rng(0)
+    cells = np.union1d(rng.choice(np.flatnonzero(layout["counts"]), 100, replace=False),
+                       rng.choice(layout["cells"], 50, replace=False))
+    check_references(s, cells)
+    check_skip(s, rng.choice(layout["cells"], 1000, replace=False))
+
+
+def fixed_shape_scenes(far_grids):
+    """Grids and brute forces of the far scenes padded to shared shapes: every scene runs
+    the same compiled kernels."""
+    triangle_cap = max(s.num_triangles for s in far_grids.values())
+    cell_cap = max(s["cell_start"].shape[0] - 1 for s in far_grids.values())
+    reference_cap = max(s["references"].shape[0] for s in far_grids.values())
+    out = {}
+    for name, s in far_grids.items():
+        t = s.num_triangles
+        triangles = np.zeros((triangle_cap, 3, 3), np.float32)
+        triangles[:t] = s["triangles"]
+        ids = np.arange(triangle_cap, dtype=np.int32) + 10 * triangle_cap  # never hit
+        ids[:t] = s["triangle_ids"]
+        brute = Structure(kind="brute", arrays={"triangles": triangles, "triangle_ids": ids})
+        out[name] = (fixed_shape_grid(s, cell_cap, reference_cap, triangle_cap), brute)
+    return out
+
+
+@pytest.fixture(scope="module")
+def far_padded(far_grids):
+    return fixed_shape_scenes(far_grids)
+
+
+@pytest.mark.camel
+@pytest.mark.parametrize("kernel", FAR_KERNELS)
+@pytest.mark.parametrize("name", [*TRANSFORMS, "two camels"])
+def test_far_or_scaled_camel_hits_match_brute(far_scenes, far_padded, name, kernel):
+    """Brute force's hits, bit for bit, on the moved and scaled camels and on two camels 1e3
+    apart (rays aimed at each, and from around each at the other)."""
+    origins, directions = far_scenes[name][2:]
+    padded, brute = far_padded[name]
+    want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
+    got = as_numpy(jrt.closest_hit(padded, origins, directions, kernel=kernel))
+    assert (want["triangle"] >= 0).mean() > 0.2
+    assert_same_hits(got, want, origins, directions, f"grid {kernel}/{name}")
+
+
+# ---------------------------------------------------------------------------------------------
 # Random soups (hypothesis): flat triangles on cell faces, origins on faces and corners
 # ---------------------------------------------------------------------------------------------
 
 
-def fixed_shape_grid(structure: Structure) -> Structure:
-    """The same grid with CELL_CAP cells, REFERENCE_CAP references and CAP triangles (the
-    cells beyond the grid are never addressed)."""
+def fixed_shape_grid(structure: Structure, cell_cap: int = CELL_CAP,
+                     reference_cap: int = REFERENCE_CAP, triangle_cap: int = CAP) -> Structure:
+    """The same grid with ``cell_cap`` cells, ``reference_cap`` references and
+    ``triangle_cap`` triangles (the cells beyond the grid are never addressed)."""
     cells = structure["cell_start"].shape[0] - 1
     references = structure["references"]
-    assert cells <= CELL_CAP and references.shape[0] <= REFERENCE_CAP
-    starts = np.full(CELL_CAP + 1, structure["cell_start"][-1], np.int32)
+    assert cells <= cell_cap and references.shape[0] <= reference_cap
+    starts = np.full(cell_cap + 1, structure["cell_start"][-1], np.int32)
     starts[:cells + 1] = structure["cell_start"]
-    skip = np.zeros(CELL_CAP, np.int8)
+    skip = np.zeros(cell_cap, np.int8)
     skip[:cells] = structure["skip"]
-    refs = np.zeros(REFERENCE_CAP, np.int32)
+    refs = np.zeros(reference_cap, np.int32)
     refs[:references.shape[0]] = references
     t = structure.num_triangles
-    triangles = np.zeros((CAP, 3, 3), np.float32)
+    triangles = np.zeros((triangle_cap, 3, 3), np.float32)
     triangles[:t] = structure["triangles"]
-    ids = np.full(CAP, -1, np.int32)
+    ids = np.full(triangle_cap, -1, np.int32)
     ids[:t] = structure["triangle_ids"]
     return Structure(kind="grid", arrays={
         "grid": structure["grid"], "cell_start": starts, "skip": skip, "references": refs,
-        "triangles": triangles, "triangle_ids": ids}, stats=structure.stats)
+        "triangles": triangles, "triangle_ids": ids, "frame": structure["frame"]},
+        stats=structure.stats)
 
 
 def onto_cell_faces(rng, vertices, faces, params):
     """The soup with its axis-aligned flat triangles moved exactly onto cell faces and a
     few replaced by large flat triangles on cell faces (spanning many cells), keeping the
-    grid (its bounds and triangle count); returns the vertices and the grid's planes."""
+    grid (its bounds, frame and triangle count); returns the vertices and the grid's
+    planes in world coordinates (those that ``plane + frame`` represents exactly, so
+    that the moved triangles lie exactly on cell faces in the grid's frame too)."""
     first = accel.build("grid", vertices, faces, **params)
-    planes = planes_of(first)
+    frame = first["frame"]
+    planes = world_planes(planes_of(first), frame)
     tri = vertices[faces].copy()
-    lo, hi = first["grid"][0:3], first["grid"][3:6]
+    if first.num_triangles:  # the bounds in world coordinates
+        lo, hi = first["triangles"].min(axis=(0, 1)), first["triangles"].max(axis=(0, 1))
+    else:
+        lo = hi = np.zeros(3, np.float32)
     keep = np.zeros(len(faces), bool)
     keep[expected_ids(vertices, faces)] = True
     # Triangles that hold the box's bounds stay where they are.
     movable = keep & ~np.any((tri == lo) | (tri == hi), axis=(1, 2))
-    inner = [p[1:-1] for p in planes]
+    inner = world_planes([p[1:-1] for p in planes_of(first)], frame)
     flat = np.all(tri == tri[:, :1], axis=1)  # [n, 3]: flat on that axis
     for row in np.flatnonzero(movable & flat.any(axis=1)):
         axis = int(np.flatnonzero(flat[row])[0])
@@ -533,6 +717,7 @@ def onto_cell_faces(rng, vertices, faces, params):
     moved = tri.reshape(-1, 3)
     second = accel.build("grid", moved, faces, **params)
     np.testing.assert_array_equal(second["grid"], first["grid"])
+    np.testing.assert_array_equal(second["frame"], frame)
     return moved, planes
 
 

@@ -39,7 +39,7 @@ from test_bvh_traversal import (
 import accel
 import jrt
 from accel import kdtree
-from accel.geometry import CELL_MARGIN, triangles_overlap_boxes, widen_boxes
+from accel.geometry import CELL_MARGIN, triangles_overlap_boxes
 from accel.structure import Structure
 from jrt.trace import as_numpy
 
@@ -160,9 +160,9 @@ def check_structure(structure, vertices, faces, kind=KIND):
     faces = np.asarray(faces)
     assert structure.kind == kind
     assert set(structure.arrays) == {"nodes", "bounds", "references", "triangles",
-                                     "triangle_ids"}
-    triangles, ids, references, bounds = (np.asarray(structure[k]) for k in (
-        "triangles", "triangle_ids", "references", "bounds"))
+                                     "triangle_ids", "frame"}
+    triangles, ids, references, bounds, frame = (np.asarray(structure[k]) for k in (
+        "triangles", "triangle_ids", "references", "bounds", "frame"))
     assert triangles.dtype == np.float32 and ids.dtype == np.int32
     assert references.dtype == np.int32 and bounds.dtype == np.float32
     keep = expected_ids(vertices, faces)
@@ -170,8 +170,16 @@ def check_structure(structure, vertices, faces, kind=KIND):
     np.testing.assert_array_equal(triangles, vertices[faces[keep]].reshape(-1, 3, 3))
     assert np.all((references >= 0) & (references < max(len(keep), 1)))
     if len(keep):
-        np.testing.assert_array_equal(bounds, [triangles.min(axis=(0, 1)),
-                                               triangles.max(axis=(0, 1))])
+        # The frame: the point of the triangles' box nearest the origin; the root cell:
+        # their exact box in that frame, rounded outward to float32.
+        lo, hi = triangles.min(axis=(0, 1)), triangles.max(axis=(0, 1))
+        np.testing.assert_array_equal(frame, np.minimum(np.maximum(0, lo), hi))
+        exact = np.stack([lo, hi]).astype(np.float64) - frame.astype(np.float64)
+        assert (bounds[0] <= exact[0]).all() and (bounds[1] >= exact[1]).all()
+        np.testing.assert_array_equal(
+            np.nextafter(bounds[0], np.float32(np.inf)) > exact[0], True)
+        np.testing.assert_array_equal(
+            np.nextafter(bounds[1], np.float32(-np.inf)) < exact[1], True)
         # Every triangle is referenced somewhere.
         assert np.all(np.bincount(references, minlength=len(keep)) >= 1)
     else:  # one unused slot (the engine gathers one)
@@ -224,7 +232,9 @@ def planar_excused(triangle, path) -> bool:
 
 def check_references(structure, tree, leaves=None, rng=None):
     """The reference rule on every leaf (or a sample of ``leaves``)."""
-    triangles = np.asarray(structure["triangles"], np.float64)
+    # The cells are in the structure's frame: so are the triangles compared with them.
+    triangles = (np.asarray(structure["triangles"], np.float64)
+                 - np.asarray(structure["frame"], np.float64))
     references = np.asarray(structure["references"])
     if len(triangles) == 0:
         return
@@ -233,16 +243,18 @@ def check_references(structure, tree, leaves=None, rng=None):
         full = rng.choice(full, leaves, replace=False)
     root_lo, root_hi = tree["row_lo"][0], tree["row_hi"][0]
     tri_lo, tri_hi = triangles.min(axis=1), triangles.max(axis=1)
+    # Each triangle's own margin: CELL_MARGIN of its extent (the least a face is widened).
+    own = CELL_MARGIN * (tri_hi - tri_lo).max(axis=1)
     for chunk in np.array_split(full, max(1, len(full) // 64)):
         rows, slots = tree["leaf_row"][chunk], tree["leaf_slot"][chunk]
         lo, hi = tree["cell_lo"][rows, slots], tree["cell_hi"][rows, slots]
-        wlo, whi = widen_boxes(lo, hi)
-        # Candidates by bounds, then the exact test.
-        near = np.all((tri_lo[None] <= whi[:, None]) & (tri_hi[None] >= wlo[:, None]), axis=2)
+        # Candidates by bounds, then the exact test on the cell widened by the margin.
+        near = np.all((tri_lo[None] <= hi[:, None] + own[None, :, None])
+                      & (tri_hi[None] >= lo[:, None] - own[None, :, None]), axis=2)
         leaf_i, tri_i = np.nonzero(near)
         touch = np.zeros(near.shape, bool)
-        touch[leaf_i, tri_i] = triangles_overlap_boxes(triangles[tri_i], wlo[leaf_i],
-                                                       whi[leaf_i])
+        touch[leaf_i, tri_i] = triangles_overlap_boxes(
+            triangles[tri_i], lo[leaf_i] - own[tri_i, None], hi[leaf_i] + own[tri_i, None])
         held = np.zeros(near.shape, bool)
         for i, leaf in enumerate(chunk):
             first, count = tree["leaf_first"][leaf], tree["leaf_count"][leaf]
@@ -253,12 +265,11 @@ def check_references(structure, tree, leaves=None, rng=None):
             assert planar_excused(triangles[t], path), (
                 f"triangle {t} touches leaf ({rows[i]}, {slots[i]})'s widened cell, "
                 "unreferenced")
-        # A referenced triangle reaches the cell widened by the margin of the root's extent.
-        size = root_hi - root_lo
-        blo = lo - CELL_MARGIN * (np.abs(lo) + size)
-        bhi = hi + CELL_MARGIN * (np.abs(hi) + size)
+        # A referenced triangle reaches the cell widened by the largest margin: CELL_MARGIN
+        # of the root's extent and of the triangle's.
         li, ti = np.nonzero(held)
-        assert triangles_overlap_boxes(triangles[ti], blo[li], bhi[li]).all(), \
+        reach = (CELL_MARGIN * (root_hi - root_lo))[None] + own[ti, None]
+        assert triangles_overlap_boxes(triangles[ti], lo[li] - reach, hi[li] + reach).all(), \
             "a reference to a triangle away from the leaf"
 
 
@@ -550,7 +561,8 @@ def fixed_shape(structure: Structure) -> Structure:
     ids[:t] = structure["triangle_ids"]
     return Structure(kind=structure.kind, arrays={
         "nodes": padded, "bounds": np.asarray(structure["bounds"]), "references": slots,
-        "triangles": triangles, "triangle_ids": ids}, layout=(("leaf_bits", LEAF_BITS),),
+        "triangles": triangles, "triangle_ids": ids, "frame": np.asarray(structure["frame"])},
+        layout=(("leaf_bits", LEAF_BITS),),
         stats=structure.stats)
 
 

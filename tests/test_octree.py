@@ -2,10 +2,11 @@
 
 Builder: the arrays decoded against the documented layout by an independent walk (a tree of
 interior rows in breadth-first order, eight children each, cells halved at the stored float32
-centres, leaf codes over disjoint slot ranges); the statistics recomputed from the decoded
+centres, leaf codes over disjoint slot ranges, all in the local frame around ``frame``, a
+point of the triangles' bounding box); the statistics recomputed from the decoded
 cells; and the reference rule checked densely, leaf by leaf against every triangle, with the
 shared exact triangle-box test on the widened leaf cell: a leaf references a triangle if and
-only if the triangle touches the leaf's widened cell.
+only if the triangle (in the local frame) touches the leaf's widened cell.
 
 Traversal: the same hits as brute force, bit for bit, with every kernel: on the camel (20k
 camera and 20k incoherent rays, closest hit and ``occluded``),
@@ -14,6 +15,10 @@ flat triangles, triangles lying exactly in the octree's mid-planes and on the ro
 faces, rays with ±0.0 direction components, origins exactly on cell faces and at cell
 centres, rays lying in a mid-plane, and soups far from the origin. The soups' trees are
 padded to fixed shapes so that every example runs the same compiled kernels.
+
+Far from the origin: the camel moved by 1e3 and 1e5 and scaled by 1e-4 and 1e4 builds the
+references it builds at the origin (the margins follow the scene's extent, not its
+position) and gives brute force's hits; so does a scene of two camels 1e3 apart.
 """
 
 from __future__ import annotations
@@ -38,9 +43,19 @@ from test_bvh_traversal import (
 import accel
 import jrt
 from accel import octree
-from accel.geometry import triangles_overlap_boxes, widen_boxes
+from accel.geometry import (
+    CELL_MARGIN,
+    float32_down,
+    float32_up,
+    frame_origin,
+    local_corners,
+    triangles_overlap_boxes,
+)
 from accel.structure import Structure
-from jrt.engine import StackOverflowError
+from jrt.data import camel_path
+from jrt.engine import POSITION_DEPENDENT_KERNELS, StackOverflowError
+from jrt.mesh import load_mesh
+from jrt.raysets import incoherent_set
 from jrt.trace import as_numpy
 
 STAT_KEYS = {
@@ -132,14 +147,17 @@ def leaf_of_slots(decoded, slots: int) -> np.ndarray:
     return owner
 
 
-def dense_overlaps(triangles, lo, hi, tri_ids) -> list[np.ndarray]:
-    """For each triangle row in ``tri_ids``: the leaves whose widened cell it touches,
-    every leaf tested (a bounding-box cut first, then the exact separating-axis test)."""
-    wlo, whi = widen_boxes(lo, hi)
-    tri = np.asarray(triangles, np.float64)
+def dense_overlaps(local, lo, hi, tri_ids) -> list[np.ndarray]:
+    """For each triangle row in ``tri_ids``: the leaves whose cell, widened by CELL_MARGIN
+    of its size and of the triangle's extent, it touches, every leaf tested (a
+    bounding-box cut first, then the exact separating-axis test). ``local``: the
+    triangles in the tree's frame (float64), as the cells are."""
+    tri = np.asarray(local, np.float64)
     out = []
     for t in tri_ids:
         tlo, thi = tri[t].min(axis=0), tri[t].max(axis=0)
+        grow = CELL_MARGIN * ((hi - lo) + (thi - tlo).max())
+        wlo, whi = lo - grow, hi + grow
         near = np.flatnonzero(np.all((tlo <= whi) & (thi >= wlo), axis=1))
         hit = triangles_overlap_boxes(np.repeat(tri[t][None], near.size, 0), wlo[near],
                                       whi[near])
@@ -163,6 +181,13 @@ def check_octree(structure, vertices, faces, *, sample=None, rng=None, **params)
     triangles = structure["triangles"]
     references = np.asarray(structure["references"])
     assert references.dtype == np.int32
+    # The local frame (a point of the triangles' bounding box); the cells are local.
+    frame = np.asarray(structure["frame"])
+    assert frame.dtype == np.float32 and frame.shape == (3,)
+    np.testing.assert_array_equal(frame, frame_origin(triangles))
+    if not ids.size:
+        np.testing.assert_array_equal(frame, 0)
+    local = local_corners(triangles, frame)
 
     d = decode(structure)
     slots = stats["references"]
@@ -175,8 +200,8 @@ def check_octree(structure, vertices, faces, *, sample=None, rng=None, **params)
     # The root is cubic and contains every triangle.
     root_lo, root_hi = d["interior_lo"][0], d["interior_hi"][0]
     if ids.size:
-        assert (triangles.min(axis=(0, 1)) >= root_lo).all()
-        assert (triangles.max(axis=(0, 1)) <= root_hi).all()
+        assert (local.min(axis=(0, 1)) >= root_lo).all()
+        assert (local.max(axis=(0, 1)) <= root_hi).all()
     # Splitting rule: leaves hold at most k unless at the depth limit.
     assert depth.max() <= limit
     assert ((count <= k) | (depth == limit)).all()
@@ -188,7 +213,7 @@ def check_octree(structure, vertices, faces, *, sample=None, rng=None, **params)
     # The reference rule, densely: leaf L references t iff t touches L's widened cell.
     rows = np.arange(len(ids)) if sample is None else rng.choice(
         len(ids), min(sample, len(ids)), replace=False)
-    want = dense_overlaps(triangles, d["leaf_lo"], d["leaf_hi"], rows)
+    want = dense_overlaps(local, d["leaf_lo"], d["leaf_hi"], rows)
     for t, leaves in zip(rows, want, strict=True):
         got = np.sort(owner[references == t])
         np.testing.assert_array_equal(got, leaves, err_msg=f"triangle row {t}")
@@ -488,7 +513,7 @@ def test_rays_on_cell_faces_and_centres(max_leaf_size):
                             max_depth=4)
     d = check_octree(structure, vertices, faces, max_leaf_size=max_leaf_size, max_depth=4)
     centre = d["interior_lo"][0] + (d["interior_hi"][0] - d["interior_lo"][0]) / 2
-    assert (centre == 2).all()
+    assert (centre + structure["frame"] == 2).all()
     values = np.float32([0, 0.5, 1, 1.5, 2, 2.25, 3, 3.5, 4])
     rng = np.random.default_rng(3)
     n = 512
@@ -522,37 +547,48 @@ def fits(structure: Structure) -> bool:
             and structure["references"].size <= REFERENCE_CAP)
 
 
-def fixed_shape(structure: Structure) -> Structure:
-    """The same tree with NODE_CAP rows, REFERENCE_CAP slots, CAP triangle rows and leaf
-    references of LEAF_BITS (unreferenced zero rows and slots as padding)."""
+def fixed_shape(structure: Structure, *, rows=NODE_CAP, slots=REFERENCE_CAP, triangles=CAP,
+                leaf_bits=LEAF_BITS) -> Structure:
+    """The same tree with ``rows`` node rows, ``slots`` reference slots, ``triangles``
+    triangle rows and leaf references of ``leaf_bits`` (unreferenced zero rows and slots
+    as padding), so that trees of one padded shape share every compiled kernel."""
     nodes = np.asarray(structure["nodes"])
     m, r, t = nodes.shape[0], structure["references"].size, structure.num_triangles
-    assert fits(structure)
+    assert m <= rows and r <= slots
     bits = structure.layout_value("leaf_bits")
-    assert bits <= LEAF_BITS and t <= CAP
+    assert bits <= leaf_bits and t <= triangles
     refs = nodes.view(np.int32)[:, 4:12]
     code = ~refs
-    padded = np.zeros((NODE_CAP, 12), np.float32)
+    padded = np.zeros((rows, 12), np.float32)
     padded[:m] = nodes
     padded.view(np.int32)[:m, 4:12] = np.where(
-        refs >= 0, refs, ~(((code >> bits) << LEAF_BITS) | (code & ((1 << bits) - 1))))
-    references = np.zeros(REFERENCE_CAP, np.int32)
+        refs >= 0, refs, ~(((code >> bits) << leaf_bits) | (code & ((1 << bits) - 1))))
+    references = np.zeros(slots, np.int32)
     references[:r] = structure["references"]
-    triangles = np.zeros((CAP, 3, 3), np.float32)
-    triangles[:t] = structure["triangles"]
-    ids = np.full(CAP, -1, np.int32)
+    corners = np.zeros((triangles, 3, 3), np.float32)
+    corners[:t] = structure["triangles"]
+    ids = np.full(triangles, -1, np.int32)
     ids[:t] = structure["triangle_ids"]
     return Structure(kind="octree", arrays={"nodes": padded, "references": references,
-                                            "triangles": triangles, "triangle_ids": ids},
-                     layout=(("leaf_bits", LEAF_BITS),), stats=structure.stats)
+                                            "triangles": corners, "triangle_ids": ids,
+                                            "frame": structure["frame"]},
+                     layout=(("leaf_bits", leaf_bits),), stats=structure.stats)
 
 
 def plane_values(structure) -> list[np.ndarray]:
-    """Per axis: the coordinates of the tree's mid-planes and of the root cube's faces."""
+    """Per axis: the world coordinates of the tree's mid-planes and of the root cube's
+    faces (stored in the local frame). A plane ``c`` is at ``frame + c``; where that sum
+    is not a float32, the two float32 values around it stand for it (a point there is
+    moved by ``o - frame`` to within an ulp of the plane, on either side)."""
     nodes = np.asarray(structure["nodes"])
+    frame = np.asarray(structure["frame"], np.float64)
     centre, half = nodes[0, :3], nodes[0, 3]
-    return [np.unique(np.concatenate([nodes[:, a], [centre[a] - half, centre[a] + half]]))
-            for a in range(3)]
+    out = []
+    for a in range(3):
+        local = np.concatenate([nodes[:, a], [centre[a] - half, centre[a] + half]])
+        world = local.astype(np.float64) + frame[a]
+        out.append(np.unique(np.concatenate([float32_down(world), float32_up(world)])))
+    return out
 
 
 def in_planes(rng, vertices, planes, count):
@@ -618,9 +654,9 @@ def soups(draw):
     faces = np.arange(len(vertices), dtype=np.int32).reshape(-1, 3)
     origins, directions = rays(rng, vertices, faces)
     structure = octree.build(vertices, faces, **params)
+    centres = np.asarray(structure["nodes"])[:, :3].astype(np.float64) + structure["frame"]
     origins, directions = plane_rays(rng, vertices, plane_values(structure),
-                                     np.asarray(structure["nodes"])[:, :3], origins,
-                                     directions)
+                                     centres.astype(np.float32), origins, directions)
     return vertices, faces, params, structure, origins, directions, rng
 
 
@@ -664,3 +700,180 @@ def test_stack_overflow_raises():
     brute = fixed_shape_brute(accel.build("brute", vertices, faces))
     assert_same_hits(got, as_numpy(jrt.closest_hit(brute, origins, directions)), origins,
                      directions, "default stack")
+
+
+# ---------------------------------------------------------------------------------------------
+# Far from the origin, and at other scales: the local frame
+# ---------------------------------------------------------------------------------------------
+
+#: The camel moved and scaled, in float64 (then rounded to float32). The moves are
+#: integers, so the moved float32 mesh moves back exactly (``far_camels``).
+FAR = {
+    "moved 1e3": (np.float64([1000, -700, 1300]), 1.0),
+    "moved 1e5": (np.float64([100_000, -70_000, 130_000]), 1.0),
+    "scaled 1e-4": (np.zeros(3), 1e-4),
+    "scaled 1e4": (np.zeros(3), 1e4),
+}
+FAR_RAYS = 1000
+
+
+def rays_at_vertices(vertices, source, count, seed):
+    """``count`` rays from the point ``source`` aimed at random vertices (they meet edges
+    and corners)."""
+    v = np.asarray(vertices, np.float64)
+    rng = np.random.default_rng(seed)
+    origins = np.tile(np.asarray(source, np.float32), (count, 1))
+    directions = v[rng.integers(0, len(v), count)] - origins
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return origins, directions.astype(np.float32)
+
+
+def aimed_rays(vertices, count, seed):
+    """``count`` rays: half from a sphere around the mesh (``incoherent_set``), half from
+    a point inside its bounding box aimed at its vertices."""
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    source = lo + np.random.default_rng(seed).uniform(0.3, 0.7, 3) * (hi - lo)
+    o1, d1 = incoherent_set(vertices, count - count // 2, seed=seed)
+    o2, d2 = rays_at_vertices(vertices, source, count // 2, seed)
+    return np.concatenate([o1, o2]), np.concatenate([d1, d2])
+
+
+@pytest.fixture(scope="module")
+def small_camel():
+    try:
+        path = camel_path("camel-19k")
+    except FileNotFoundError as exc:
+        pytest.skip(str(exc))
+    return load_mesh(path)
+
+
+#: The two-camel scene's depth limit (see test_two_camels_far_apart_match_brute).
+TWO_CAMELS_DEPTH = 14
+
+
+def two_camels(camel):
+    """Two camels 1e3 apart, both moved by FAR["moved 1e3"]: vertices, faces."""
+    v = camel.vertices.astype(np.float64) + FAR["moved 1e3"][0]
+    first = v.astype(np.float32)
+    second = (v + [1000.0, 0.0, 0.0]).astype(np.float32)
+    return (np.concatenate([first, second]),
+            np.concatenate([camel.faces, camel.faces + len(v)]))
+
+
+@pytest.fixture(scope="module")
+def far_camels(small_camel):
+    """name -> (vertices, faces, octree, the octree padded, brute force padded, origins,
+    directions) for the camel at the origin, every case of FAR and "two camels". The
+    padded structures share one shape, so each kernel compiles once for all of them. A
+    moved mesh is also built moved back (exactly): "<name> back" (no rays)."""
+    faces = small_camel.faces
+    base = small_camel.vertices.astype(np.float64)
+    meshes = {"origin": (small_camel.vertices, faces)}
+    for name, (move, scale) in FAR.items():
+        meshes[name] = ((base * scale + move).astype(np.float32), faces)
+        if scale == 1.0:
+            back = meshes[name][0].astype(np.float64) - move
+            assert (back.astype(np.float32) == back).all()
+            meshes[name + " back"] = (back.astype(np.float32), faces)
+    meshes["two camels"] = two_camels(small_camel)
+    trees = {name: octree.build(v, f, max_depth=TWO_CAMELS_DEPTH if name == "two camels"
+                                else None) for name, (v, f) in meshes.items()}
+    rows = max(t["nodes"].shape[0] for t in trees.values())
+    slots = max(t["references"].size for t in trees.values())
+    bits = max(t.layout_value("leaf_bits") for t in trees.values())
+    t = max(len(f) for _, f in meshes.values())
+    out = {}
+    for seed, (name, (v, f)) in enumerate(meshes.items()):
+        tree = trees[name]
+        brute = accel.build("brute", v, f)
+        corners = np.zeros((t, 3, 3), np.float32)
+        corners[:brute.num_triangles] = brute["triangles"]
+        ids = np.arange(t, dtype=np.int32) + 10 * t  # padding rows: zero, never hit
+        ids[:brute.num_triangles] = brute["triangle_ids"]
+        padded_brute = Structure(kind="brute",
+                                 arrays={"triangles": corners, "triangle_ids": ids})
+        if name == "two camels":  # around each, and from each at the other's vertices
+            half = len(v) // 2
+            first, second = v[:half], v[half:]
+            parts = [aimed_rays(first, FAR_RAYS * 3 // 10, seed),
+                     aimed_rays(second, FAR_RAYS * 3 // 10, seed + 1),
+                     rays_at_vertices(second, first.mean(axis=0), FAR_RAYS // 5, seed + 2),
+                     rays_at_vertices(first, second.mean(axis=0), FAR_RAYS // 5, seed + 3)]
+            rays = (np.concatenate([p[0] for p in parts]),
+                    np.concatenate([p[1] for p in parts]))
+        else:
+            rays = aimed_rays(v, FAR_RAYS, seed)
+        out[name] = (v, f, tree, fixed_shape(tree, rows=rows, slots=slots, triangles=t,
+                                             leaf_bits=bits), padded_brute, *rays)
+    return out
+
+
+@pytest.mark.camel
+def test_far_camels_build_the_same_references(far_camels):
+    """Moved 1e5 away, the margins in world coordinates (2^-16 of 1.3e5 = 2.0) would
+    swallow the camel (1 across) whole in every cell; in the local frame each build
+    references about what it does at the origin. A move rounds the vertices to float32
+    at the new magnitude (by 2^-7 at 1e5, the size of the smaller triangles, a third of
+    which become degenerate; most vertices then lie on the tree's planes), so it is
+    compared with the same float32 mesh moved back exactly; a scale with the origin's
+    mesh. (In world coordinates the camel moved by 1e3 failed to build: 29M references.)"""
+    origin = far_camels["origin"][2].stats
+    for name, (_, scale) in FAR.items():
+        v, f, tree = far_camels[name][:3]
+        stats = tree.stats
+        check_octree(tree, v, f, sample=50, rng=np.random.default_rng(1))
+        assert (np.abs(tree["frame"]) > 0).all() == (scale == 1.0), name
+        same = far_camels[name + " back"][2] if scale == 1.0 else far_camels["origin"][2]
+        assert stats["triangles"] == same.stats["triangles"], name
+        assert stats["depth"] == same.stats["depth"], name
+        # (Within 10 %: the planes of the two frames round differently, and at 1e5 most
+        # vertices lie on a plane of one tree or the other.)
+        for key in ("references", "leaves", "interior_cells"):
+            assert stats[key] == pytest.approx(same.stats[key], rel=0.1), (name, key)
+        assert stats["references"] <= 1.05 * origin["references"], name
+        # The same root cube, scaled.
+        assert tree["nodes"][0, 3] == pytest.approx(same["nodes"][0, 3] * scale, rel=1e-5)
+
+
+def far_hits_match_brute(far_camels, name, kernel):
+    _, _, _, tree, brute, origins, directions = far_camels[name]
+    if kernel in POSITION_DEPENDENT_KERNELS:
+        # Its margins grow with |frame| (jrt.engine.margin_pad): 2^-16 of 2.6e5 at 1e5,
+        # wider than the camel, so there every ray tests every reference. A quarter of
+        # the rays (the same count in every case: one compiled shape).
+        origins, directions = origins[::4], directions[::4]
+    want = as_numpy(jrt.closest_hit(brute, origins, directions, kernel=kernel))
+    got = as_numpy(jrt.closest_hit(tree, origins, directions, kernel=kernel))
+    assert (want["triangle"] >= 0).mean() > 0.3, name
+    assert_same_hits(got, want, origins, directions, f"octree {name} {kernel}")
+
+
+#: Kernels of the far tests: watertight runs on the far camels under every structure in
+#: tests/test_anywhere.py; the plane kernel's margins grow with the frame's magnitude
+#: (jrt.engine.margin_pad), so far away every ray tests every reference (slow, not new).
+FAR_KERNELS = ("moller_trumbore",)
+
+
+@pytest.mark.camel
+@pytest.mark.parametrize("kernel", FAR_KERNELS)
+def test_far_camels_closest_hit_matches_brute(far_camels, kernel):
+    """FAR_RAYS rays per case (half from around the camel, half from inside its box aimed
+    at its vertices): brute force's hits, bit for bit, wherever the camel sits."""
+    for name in ["origin", *FAR]:
+        far_hits_match_brute(far_camels, name, kernel)
+
+
+@pytest.mark.camel
+@pytest.mark.parametrize("kernel", FAR_KERNELS)
+def test_two_camels_far_apart_match_brute(far_camels, kernel):
+    """Two camels 1e3 apart, moved by (1000, -700, 1300): the scene is 1e3 across, its
+    cells at depth 14 a sixteenth of a camel (1e3 / 2^15), each widened by 2^-16 of its
+    own size and of its triangles' (not of the scene's 1e3). Rays around each camel, and
+    from each camel aimed at the other's vertices (t about 1e3)."""
+    v, f, tree = far_camels["two camels"][:3]
+    assert tree.stats["depth"] == TWO_CAMELS_DEPTH
+    assert tree.stats["references"] < 3 * len(f)
+    np.testing.assert_array_equal(tree["frame"], v.min(axis=0) * [1, 0, 1]
+                                  + v.max(axis=0) * [0, 1, 0])  # the corner nearest 0
+    far_hits_match_brute(far_camels, "two camels", kernel)
