@@ -140,17 +140,18 @@ def build(kind: str, vertices, faces, key=None):
     return _BUILT[(key, kind)]
 
 
-#: Address-space cap of a guarded build (bytes): far from the origin some builders'
-#: margins (2^-16 of the coordinates) exceed the triangles and their references explode.
+#: Address-space cap of a guarded build (bytes): a builder that runs away (its references
+#: multiplying) fails with MemoryError instead of taking the machine.
 BUILD_MEMORY_LIMIT = 3 << 30
 
 
 def build_guarded(kind: str, vertices, faces, limit: int = BUILD_MEMORY_LIMIT,
-                  timeout: float = 600):
+                  timeout: float = 600, repeat: int = 1):
     """accel.build in a subprocess (accel never imports JAX) under an address-space cap
     of ``limit`` bytes: the Structure, or a string saying why the build failed (the
     builder's error, MemoryError under the cap, a timeout), so that a builder that runs
-    away cannot take the machine or the suite down."""
+    away cannot take the machine or the suite down. With ``repeat`` > 1 the subprocess
+    builds that many times and ``stats["build_seconds"]`` is the fastest build."""
     import pickle
     import tempfile
 
@@ -160,13 +161,16 @@ def build_guarded(kind: str, vertices, faces, limit: int = BUILD_MEMORY_LIMIT,
         code = ("import pickle, resource, sys, numpy as np; "
                 "resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[4]),) * 2); "
                 "import accel; m = np.load(sys.argv[2]); "
-                "s = accel.build(sys.argv[1], m['vertices'], m['faces']); "
+                "runs = [accel.build(sys.argv[1], m['vertices'], m['faces']) "
+                "for _ in range(int(sys.argv[5]))]; s = runs[-1]; "
+                "s.stats['build_seconds'] = min(r.stats['build_seconds'] for r in runs); "
                 "pickle.dump(s, open(sys.argv[3], 'wb'))")
         root, env = _repo_process()
         start = time.perf_counter()
         try:
             proc = subprocess.run([sys.executable, "-W", "ignore", "-c", code, kind, str(src),
-                                   str(dst), str(limit)], cwd=root, env=env,
+                                   str(dst), str(limit), str(max(int(repeat), 1))],
+                                  cwd=root, env=env,
                                   capture_output=True, text=True, timeout=timeout)
         except subprocess.TimeoutExpired:
             return f"timed out after {timeout:g} s"
@@ -546,6 +550,35 @@ def closed_mesh_rays(mesh, per_family: int, seed: int = 1) -> dict:
     d = (aim / np.linalg.norm(aim, axis=1, keepdims=True)).astype(np.float32)
     families["interior->vertex"] = (interior, d, np.full(len(interior), np.nan), True)
     return families
+
+
+def aimed_rays(vertices, faces, count: int, seed: int = 11):
+    """``count`` rays from points inside a closed mesh (libigl's generalised winding
+    number) aimed at its own float32 vertices (half) and edge midpoints (half): each
+    leaves the mesh within float32 rounding of a vertex or an edge, where a kernel or a
+    structure can let a ray slip between triangles. Every ray must hit; a miss is a crack.
+    Empty arrays when the mesh has no inside left (every face rounded to zero area)."""
+    rng = np.random.default_rng(seed)
+    v32 = np.asarray(vertices, np.float32)
+    v64 = v32.astype(np.float64)
+    faces = np.asarray(faces)
+    lo, hi = v64.min(axis=0), v64.max(axis=0)
+    cand = lo + rng.uniform(size=(4000, 3)) * (hi - lo)
+    inside = np.asarray(igl.winding_number(v64, faces.astype(np.int64), cand)) > 0.5
+    interior = cand[inside][:64]
+    if len(interior) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    pick_e = edges[rng.integers(0, len(edges), count // 2)]
+    midpoints = (v32[pick_e[:, 0]] + v32[pick_e[:, 1]]) * np.float32(0.5)
+    targets = np.concatenate([v32[rng.integers(0, len(v32), count - count // 2)],
+                              midpoints]).astype(np.float64)
+    origins = interior[rng.integers(0, len(interior), count)].astype(np.float32)
+    aim = targets - origins
+    length = np.linalg.norm(aim, axis=1, keepdims=True)
+    keep = length[:, 0] > 0
+    d = (aim[keep] / length[keep]).astype(np.float32)
+    return origins[keep], d
 
 
 def _orientations(t_all, rows, triangles, directions) -> np.ndarray:
@@ -1378,10 +1411,14 @@ def random_triangle_reintersection(count: int, directions: int, pairs_kernels,
 def case5(mesh: str = "camel-19k", rays: int = 2048,
           scales=(1e-6, 1e-4, 1e-2, 1.0, 1e2, 1e4, 1e6),
           shifts=(1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7), pairs=None, methods=METHODS,
-          random_triangles: int = 1000, directions: int = 10, reference=True) -> dict:
-    """Scale and translation sweeps of the camel: primary hit sets against the untranslated
-    float64 reference, and case 4's self-hits per offset method; then pbrt's random
-    triangles with coordinates 10^U(-8, 8)."""
+          random_triangles: int = 1000, directions: int = 10, reference=True,
+          aimed: int = 2048) -> dict:
+    """Scale and translation sweeps of the camel: every structure's build (time, memory,
+    references per leaf, against the camel at the origin), ``aimed`` rays from inside
+    aimed at the placed camel's vertices and edge midpoints (a miss is a crack), every
+    structure's hits against brute force's bit for bit, primary hit sets against the
+    untranslated float64 reference, and case 4's self-hits per offset method; then
+    pbrt's random triangles with coordinates 10^U(-8, 8)."""
     from jrt.raysets import incoherent_set
 
     if pairs is None:  # every kernel on brute force, watertight on every structure
@@ -1394,22 +1431,32 @@ def case5(mesh: str = "camel-19k", rays: int = 2048,
     records = []
     offset_fn = renderer_offset() if "pbrt" in methods else None
     sweep = {(k, s): [] for k, s in pairs}
+    builds = {kind: [] for _, kind in pairs if kind != "brute"}
     for scale, shift in _bar(configs, "case 5 sweep"):
         v, vec = transformed(m, scale, shift)
         o = (o0.astype(np.float64) * scale + shift * vec).astype(np.float32)
+        ao, ad = aimed_rays(v, m.faces, aimed, seed=12) if aimed else (o[:0], d0[:0])
         diag = float(np.linalg.norm(v.max(axis=0).astype(np.float64) - v.min(axis=0)))
         lamp = _lamp(m.vertices) * scale + shift * vec
-        built = {}
+        built, brute_hits = {}, {}
         for kernel, kind in pairs:
             if kind not in built:  # a failed build is a finding, not a crash
                 built[kind] = (build(kind, v, m.faces) if kind == "brute"
-                               else build_guarded(kind, v, m.faces))
+                               else build_guarded(kind, v, m.faces, repeat=2))
+                if kind != "brute":
+                    builds[kind].append(_build_row(built[kind], scale, shift))
             s = built[kind]
             if isinstance(s, str):
                 sweep[(kernel, kind)].append({"scale": scale, "shift": shift,
                                               "build_error": s})
                 continue
-            hits = trace(s, o, d0, kernel)
+            if kernel not in brute_hits:  # brute force's hits on both sets, this kernel
+                b = built["brute"] if kind == "brute" else build("brute", v, m.faces)
+                brute_hits[kernel] = (trace(b, o, d0, kernel), trace(b, ao, ad, kernel))
+            hits, at_aim = (brute_hits[kernel] if kind == "brute" else
+                            (trace(s, o, d0, kernel), trace(s, ao, ad, kernel)))
+            differ = (_bits_differ(hits, brute_hits[kernel][0])
+                      + _bits_differ(at_aim, brute_hits[kernel][1]))
             h, hr = hits["triangle"] >= 0, tri_ref >= 0
             t = hits["t"] / scale
             with np.errstate(invalid="ignore"):
@@ -1420,7 +1467,9 @@ def case5(mesh: str = "camel-19k", rays: int = 2048,
                                     reference, offset_fn)
             totals = _method_totals(res["table"])
             sweep[(kernel, kind)].append({
-                "scale": scale, "shift": shift, "hit_mismatches": int(mism.sum()),
+                "scale": scale, "shift": shift, "aimed_rays": int(len(ao)),
+                "cracks": int((at_aim["triangle"] < 0).sum()),
+                "mismatches_vs_brute": differ, "hit_mismatches": int(mism.sum()),
                 "hit_or_miss_changed": int((h != hr).sum()),
                 "max_rel_t_error": _max(rel[h & hr & (hits["triangle"] == tri_ref)]),
                 "nan": int(np.isnan(hits["t"]).sum()), "secondary_rays": totals})
@@ -1429,21 +1478,138 @@ def case5(mesh: str = "camel-19k", rays: int = 2048,
         self_hits = {mm: sum(r["secondary_rays"][mm]["self_hits"] for r in rows)
                      for mm in methods}
         records.append(record(5, kernel, kind, rays=rays, sweep=rows, self_hits=self_hits,
+                              cracks=sum(r["cracks"] for r in rows
+                                         if r["shift"] <= ANYWHERE_UP_TO),
+                              cracks_beyond=sum(r["cracks"] for r in rows
+                                                if r["shift"] > ANYWHERE_UP_TO),
+                              mismatches_vs_brute=sum(r["mismatches_vs_brute"] for r in rows),
                               hit_mismatches=sum(r["hit_mismatches"] for r in rows),
                               nan=sum(r["nan"] + sum(v["nan"] for v in
                                                      r["secondary_rays"].values())
                                       for r in rows),
                               build_errors=[r for r in all_rows if "build_error" in r]))
+    anywhere = [_anywhere_record(kind, rows, [r for r in records if r["structure"] == kind])
+                for kind, rows in builds.items()]
     rand = random_triangle_reintersection(random_triangles, directions, KERNEL_NAMES, methods,
                                           offset_fn=offset_fn) if random_triangles else None
-    return {"records": records, "random_triangles": rand,
-            "findings": _findings5(records, rand),
+    return {"records": anywhere + records, "random_triangles": rand,
+            "findings": _findings_anywhere(anywhere) + " " + _findings5(records, rand),
             "parameters": {"mesh": mesh, "rays": rays, "scales": list(scales),
                            "shifts": list(shifts), "shift_direction": [1, 0.75, 0.5],
                            "methods": METHOD_LABELS,
                            "reference": "primary: the untranslated, unscaled camel in "
                                         "float64 (t divided by the scale); secondary: the "
                                         "float64 oracle on the transformed float32 mesh"}}
+
+
+def _bits_differ(a: dict, b: dict) -> int:
+    """Rays whose t, triangle, u or v differ in any bit (NaN equal to NaN)."""
+    out = np.zeros(len(a["t"]), bool)
+    for key in ("t", "triangle", "u", "v"):
+        x, y = np.asarray(a[key]), np.asarray(b[key])
+        same = (x == y) | (np.isnan(x) & np.isnan(y)) if x.dtype.kind == "f" else x == y
+        out |= ~same
+    return int(out.sum())
+
+
+def _build_row(s, scale: float, shift: float) -> dict:
+    """One build of the sweep: time, bytes, references per leaf (triangles for the BVH)."""
+    if isinstance(s, str):
+        return {"scale": scale, "shift": shift, "build_error": s}
+    per_leaf = s.stats.get("references_per_leaf_mean", s.stats.get("triangles_per_leaf_mean"))
+    return {"scale": scale, "shift": shift, "build_seconds": s.stats["build_seconds"],
+            "bytes": s.nbytes, "triangles": s.num_triangles,
+            "references": int(s.stats.get("references", s.num_triangles)),
+            "references_per_leaf": per_leaf, "leaves": s.stats.get("leaves")}
+
+
+#: The shifts up to which every structure must build as at the origin (float32 keeps
+#: 24 - log2(shift / size) bits of the camel's shape: about 4 at 10^6, none at 10^7).
+ANYWHERE_UP_TO = 1e6
+
+
+def _anywhere_record(kind: str, rows: list, traced: list) -> dict:
+    """One structure over the sweep: its build's worst ratios to the camel at the origin
+    (scale 1, shift 0) up to :data:`ANYWHERE_UP_TO`, cracks and mismatches with brute
+    force (watertight), and what happened beyond."""
+    origin = next((r for r in rows if r["scale"] == 1.0 and r["shift"] == 0.0
+                   and "build_error" not in r), None)
+    within = [r for r in rows if r["shift"] <= ANYWHERE_UP_TO]
+    failed = [r for r in within if "build_error" in r]
+    ok = [r for r in within if "build_error" not in r]
+
+    def worst(key):
+        if origin is None or not ok:
+            return None, None
+        r = max(ok, key=lambda r: r[key] / origin[key])
+        return r[key] / origin[key], _config(r)
+
+    time_x, time_at = worst("build_seconds")
+    memory_x, memory_at = worst("bytes")
+    per_leaf = [r["references_per_leaf"] for r in ok if r["references_per_leaf"]]
+    water = [r for r in traced if r["kernel"] == "watertight"]
+    beyond = [r for r in rows if r["shift"] > ANYWHERE_UP_TO]
+    return {"case": 5, "check": "builds anywhere", "kernel": "watertight", "structure": kind,
+            "configs": len(within), "build_failures": len(failed),
+            "worst_build_time_x_origin": time_x, "at": time_at,
+            "worst_memory_x_origin": memory_x, "memory_at": memory_at,
+            "references_per_leaf_at_origin": origin and origin["references_per_leaf"],
+            "references_per_leaf_max": max(per_leaf) if per_leaf else None,
+            "cracks": sum(c["cracks"] for r in water for c in r["sweep"]
+                          if c["shift"] <= ANYWHERE_UP_TO),
+            "mismatches_vs_brute": sum(c["mismatches_vs_brute"] for r in water
+                                       for c in r["sweep"] if c["shift"] <= ANYWHERE_UP_TO),
+            "beyond": [{"shift": r["shift"], **({"build_error": r["build_error"]}
+                                                if "build_error" in r else
+                                                {"triangles": r["triangles"],
+                                                 "bytes": r["bytes"]})} for r in beyond],
+            "builds": rows,
+            "traced": [{k: c[k] for k in ("scale", "shift", "cracks", "mismatches_vs_brute")}
+                       for r in water for c in r["sweep"]]}
+
+
+def _findings_anywhere(records) -> str:
+    if not records:
+        return ""
+    parts = []
+    fine = [r for r in records if not r["build_failures"]
+            and (r["worst_build_time_x_origin"] or 0) <= 2
+            and (r["worst_memory_x_origin"] or 0) <= 2 and not r["cracks"]
+            and not r["mismatches_vs_brute"]]
+    if fine:
+        parts.append(
+            "Every scale and every shift up to 10^6: " + ", ".join(
+                f"{r['structure']} (at most {r['worst_build_time_x_origin']:.2f}x the build "
+                f"time and {r['worst_memory_x_origin']:.2f}x the memory at the origin)"
+                for r in fine)
+            + " build as at the origin, with no crack and brute force's hits bit for bit "
+              "(watertight, on the incoherent and the aimed rays). The structures are built "
+              "in a local frame (a point of the mesh's box) and a reference's margin is "
+              "2^-16 of its cell's size and of its triangle's own extent "
+              "(accel.geometry.reference_margin), neither of which depends on where the "
+              "mesh sits.")
+    for r in records:
+        if r in fine:
+            continue
+        parts.append(f"{r['structure']}: {r['build_failures']} failed builds, worst time "
+                     f"{r['worst_build_time_x_origin'] or 0:.2f}x ({r['at']}), worst memory "
+                     f"{r['worst_memory_x_origin'] or 0:.2f}x ({r['memory_at']}), "
+                     f"{r['cracks']} cracks, {r['mismatches_vs_brute']} rays unlike brute "
+                     "force's.")
+    beyond = {b["shift"] for r in records for b in r["beyond"]}
+    for shift in sorted(beyond):
+        tri = {b.get("triangles") for r in records for b in r["beyond"]
+               if b["shift"] == shift}
+        cracks = sum(c["cracks"] for r in records for c in r.get("traced", [])
+                     if c["shift"] == shift)
+        parts.append(f"At shift {shift:g} float32 has no bits left for the camel's shape "
+                     f"(its ulp there exceeds the camel's size): "
+                     f"{', '.join(str(t) for t in sorted(x for x in tri if x is not None))} "
+                     "of its triangles keep a non-zero area, every structure builds over "
+                     "what is left, and what is left is no longer a closed surface: "
+                     f"{cracks} of the aimed rays pass through it, under every structure "
+                     "and brute force alike.")
+    return " ".join(parts)
 
 
 def _config(row) -> str:
@@ -1496,12 +1662,6 @@ def _findings5(records, rand) -> str:
     for kind, where in failed.items():
         parts.append(f"The {kind} build failed at " + ", ".join(
             f"{c} ({msg})" for c, msg in where.items()) + ".")
-    if failed:
-        parts.append("These builders widen cells and planes by 2^-16 of the coordinates' "
-                     "magnitude (accel.geometry.CELL_MARGIN); far from the origin that margin "
-                     "exceeds the triangles themselves and the references multiply. The BVH "
-                     "(boxes quantised in each node's own frame, never widened by the "
-                     "coordinates' magnitude) builds everywhere.")
     rays = records[0]["rays"] if records else 0
     parts.append(f"Primary hits against the untranslated float64 reference ({rays:,} rays): "
                  + (", ".join(f"{k} {v}" for k, v in mism.items()) if mism else "no mismatch")
@@ -1547,12 +1707,15 @@ def lattice_scene():
 def structure_planes(s) -> list[np.ndarray]:
     """Per axis, plane coordinates the structure itself stores: BVH box faces, kd-tree
     split planes, the BSP tree's axis-aligned planes, octree cell centres and root faces,
-    grid cell planes (float32 values)."""
+    grid cell planes (float32 values, moved from the structure's local frame to world
+    coordinates)."""
+    from accel.bvh import child_boxes
+
     planes = [[], [], []]
-    if s.kind == "bvh":
-        nodes = np.asarray(s["nodes"])
+    if s.kind == "bvh":  # the decoded child boxes' faces (empty slots' inverted boxes too)
+        lo, hi = child_boxes(np.asarray(s["nodes"]), s.layout_value("width"))
         for a in range(3):
-            planes[a] += list(nodes[:, [a, 3 + a, 6 + a, 9 + a]].ravel())
+            planes[a] += list(lo[..., a].ravel()) + list(hi[..., a].ravel())
     elif s.kind in ("kdtree",):
         nodes = np.asarray(s["nodes"])
         axis = nodes.view(np.int32)[:, 1]
@@ -1575,7 +1738,8 @@ def structure_planes(s) -> list[np.ndarray]:
         for a in range(3):
             m = np.arange(int(res[a]) + 1, dtype=np.float32)
             planes[a] += list((lo[a] + m * size[a]).astype(np.float32))
-    return [np.unique(np.asarray(p, np.float32)) for p in planes]
+    frame = np.asarray(s.arrays.get("frame", np.zeros(3, np.float32)), np.float32)
+    return [np.unique(np.asarray(p, np.float32) + frame[a]) for a, p in enumerate(planes)]
 
 
 def plane_rays(planes, count: int, box, seed: int = 7):
@@ -2240,7 +2404,7 @@ def _quick_params(case: int, pairs) -> dict:
         4: {"mesh": "camel-19k", "rays": 512, "pairs": pairs or default_combos(True)},
         5: {"rays": 256, "scales": (1e-6, 1e-3, 1.0, 1e3, 1e6), "shifts": (1.0, 1e3, 1e5, 1e7),
             "pairs": pairs or [("watertight", "brute")], "random_triangles": 300,
-            "directions": 10},
+            "directions": 10, "aimed": 256},
         6: {"rays": 2000, "pairs": pairs or combos(KERNEL_NAMES, ("brute",)) + all_engine[1:]},
         7: {"mesh": "camel-19k", "rays": 32, "cap": 200, "pairs": pairs or [("watertight",
                                                                              "bvh")]},
@@ -2264,7 +2428,7 @@ def _standard_params(case: int, pairs) -> dict:
         3: {"per_triangle": 4, "incoherent_rays": 10_000, "libigl_sample": 1000},
         4: {"rays": 1024},
         5: {"rays": 512, "scales": (1e-6, 1.0, 1e6), "shifts": (1.0, 1e4, 1e7),
-            "random_triangles": 300, **({} if pairs else {"pairs": combos(
+            "random_triangles": 300, "aimed": 512, **({} if pairs else {"pairs": combos(
                 KERNEL_NAMES, ("brute",)) + [("watertight", "bvh")]})},
         6: {"rays": 5000},
         7: {"rays": 64} if pairs else {"rays": 64, "pairs": [

@@ -135,7 +135,7 @@ def test_case4_offsets_prevent_self_intersection():
 def test_case5_pbrt_offset_has_no_self_hits_across_scale_and_offset():
     out = stability.case5(mesh="camel-19k", rays=128, scales=(1e-6, 1e-3, 1e3, 1e6),
                           shifts=(1.0, 1e3, 1e5, 1e7), pairs=[("watertight", "brute")],
-                          random_triangles=200, directions=8)
+                          random_triangles=200, directions=8, aimed=256)
     (r,) = out["records"]
     assert r["self_hits"]["pbrt"] == 0, r["self_hits"]
     assert r["nan"] == 0
@@ -148,6 +148,27 @@ def test_case5_pbrt_offset_has_no_self_hits_across_scale_and_offset():
     # requires t above its own error bound, so no re-hit (pbrt-v4's reintersect test).
     assert rand["table"]["pbrt"]["watertight"]["self_hits"] == 0
     assert all(cell["nan"] == 0 for cell in rand["table"]["pbrt"].values())
+
+
+@needs_camel_19k
+def test_case5_builds_anywhere_record():
+    """The sweep's per-structure record: the octree moved by 1e5 builds within 2x the memory
+    at the origin, with no crack on the aimed rays and brute force's hits; at 1e7 (no bits
+    left for the shape) the build still succeeds and is reported apart."""
+    out = stability.case5(mesh="camel-19k", rays=64, scales=(1.0,), shifts=(1e5, 1e7),
+                          pairs=[("watertight", "brute"), ("watertight", "octree")],
+                          random_triangles=0, methods=("none",), aimed=256)
+    (octree,) = [r for r in out["records"] if r.get("check") == "builds anywhere"]
+    assert octree["structure"] == "octree" and octree["configs"] == 2
+    assert octree["build_failures"] == 0
+    assert octree["worst_memory_x_origin"] <= 2.0
+    assert octree["cracks"] == 0 and octree["mismatches_vs_brute"] == 0
+    (beyond,) = octree["beyond"]
+    assert beyond["shift"] == 1e7 and "build_error" not in beyond
+    # Brute force itself finds no crack up to 1e5 either (the kernel is watertight there).
+    (brute,) = [r for r in out["records"] if r["structure"] == "brute"]
+    assert brute["cracks"] == 0 and all(row["aimed_rays"] > 200 for row in brute["sweep"])
+    assert "build as at the origin" in out["findings"]
 
 
 # --- Case 6 -----------------------------------------------------------------------------------
