@@ -25,7 +25,7 @@ def _crossings(ray, rows):
     px, py, pz = nx * ox, ny * oy, nz * oz
     n_o = px + py + pz
     n_d = nx * ray.direction[:, 0] + ny * ray.direction[:, 1] + nz * ray.direction[:, 2]
-    sx, sy, sz = ray.origin_scale
+    sx, sy, sz = (ray.scale(k) for k in range(3))
     delta = BOX_MARGIN * (jnp.abs(c) + jnp.abs(nx) * sx + jnp.abs(ny) * sy + jnp.abs(nz) * sz)
     t_a = (c - delta - n_o) / n_d
     t_b = (c + delta - n_o) / n_d

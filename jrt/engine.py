@@ -147,7 +147,7 @@ class Ray(NamedTuple):
     world coordinates: the hits are brute force's). The box, cell and plane tests read
     ``origin_axes``, the origin in the structure's local frame (``o - frame``, see
     ``accel.geometry.frame_origin``; the world origin for a structure without one), and
-    widen their tests by :data:`BOX_MARGIN` of ``origin_scale``, the magnitude to which
+    widen their tests by :data:`BOX_MARGIN` of :meth:`scale`, the magnitude to which
     the rounding of that origin and of the kernel's hit point is relative.
     """
 
@@ -156,7 +156,14 @@ class Ray(NamedTuple):
     origin_axes: tuple  # three [L], the origin by axis in the structure's frame
     inv_direction: tuple  # three [L], 1/d by axis (±inf for a zero component)
     tmax: jax.Array  # [L]
-    origin_scale: tuple  # three [L], |origin_axes| (+ the frame's, see margin_pad)
+    pad: Any = None  # None, or float32 [3] added to |origin_axes| (see margin_pad)
+
+    def scale(self, axis: int):
+        """[L]: the origin's magnitude on ``axis`` for the margins, ``|origin_axes[axis]|``
+        (+ ``pad[axis]``). Computed where it is used: as a field of [L] vectors it was one
+        more array for XLA to materialise at every conditional the ray enters."""
+        size = jnp.abs(self.origin_axes[axis])
+        return size if self.pad is None else size + self.pad[axis]
 
 
 class Step(NamedTuple):
@@ -277,11 +284,8 @@ def as_ray(origin, direction, tmax, frame=None, pad=None) -> Ray:
     axes = tuple(origin[:, k] for k in range(3))
     if frame is not None:
         axes = tuple(axes[k] - frame[k] for k in range(3))
-    scale = tuple(jnp.abs(a) for a in axes)
-    if pad is not None:
-        scale = tuple(scale[k] + pad[k] for k in range(3))
     return Ray(origin, direction, axes, tuple(1.0 / direction[:, k] for k in range(3)),
-               tmax, scale)
+               tmax, pad)
 
 
 def _as_ray(r, frame=None, pad=None):
@@ -635,7 +639,7 @@ def box_interval(ray: Ray, lo, hi):
     near, far = [], []
     for axis in range(3):
         o, inv = ray.origin_axes[axis], ray.inv_direction[axis]
-        size = ray.origin_scale[axis]
+        size = ray.scale(axis)
         t0 = (lo[axis] - BOX_MARGIN * (jnp.abs(lo[axis]) + size) - o) * inv
         t1 = (hi[axis] + BOX_MARGIN * (jnp.abs(hi[axis]) + size) - o) * inv
         lo_t, hi_t = jnp.minimum(t0, t1), jnp.maximum(t0, t1)

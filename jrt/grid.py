@@ -45,7 +45,7 @@ point, so a nearer triangle in a cell in between is still tested.
 **Local frame**: the grid row holds coordinates relative to the grid's ``frame`` (a point
 of the triangles' box, ``accel.geometry.frame_origin``), and the engine hands every step
 the ray origin moved into it (``ray.origin_axes = o - frame``, rounded to float32, and
-``ray.origin_scale``, the magnitude its margins use); the triangle kernels still read the
+``ray.scale``, the magnitude its margins use); the triangle kernels still read the
 world-coordinate triangles and origin. All the walk's arithmetic below is in the frame.
 
 **Why the hits are brute force's**: the exit distances carry a relative error of a few
@@ -73,7 +73,7 @@ import functools
 import jax.numpy as jnp
 from jax import lax
 
-from jrt.engine import BOX_MARGIN, Ray, Step, Traversal, box_interval
+from jrt.engine import BOX_MARGIN, Step, Traversal, as_ray, box_interval
 from jrt.fusion import computed_once
 
 _SHRINK = 1.0 - BOX_MARGIN
@@ -113,8 +113,8 @@ def _leap(ray, lo, hi, size, inv_size, n, index, k):
         # The grid's own faces are the box's, widened as box_interval widens them: the
         # last plane lo + n * size may fall an ulp short of hi (a ray running along the
         # box's face must not leave early), and a flat axis has size 0.
-        top = hi[axis] + BOX_MARGIN * (jnp.abs(hi[axis]) + ray.origin_scale[axis])
-        bottom = lo[axis] - BOX_MARGIN * (jnp.abs(lo[axis]) + ray.origin_scale[axis])
+        top = hi[axis] + BOX_MARGIN * (jnp.abs(hi[axis]) + ray.scale(axis))
+        bottom = lo[axis] - BOX_MARGIN * (jnp.abs(lo[axis]) + ray.scale(axis))
         plane = jnp.where(m >= n[axis], jnp.maximum(plane, top), plane)
         plane = jnp.where(m <= 0, jnp.minimum(plane, bottom), plane)
         bound.append(jnp.where(up[axis], top, bottom))
@@ -150,29 +150,22 @@ def _start(arrays, ray):
     return fresh, fresh, fresh, jnp.zeros(ray.tmax.shape, jnp.float32)
 
 
-def _lane_ray(origin, direction, scale):
-    """The lane's :class:`jrt.engine.Ray` rebuilt from its origin in the grid's frame, its
-    direction and its margin scale: inside a conditional, three [L, 3] operands rather
-    than thirteen (1/d is recomputed, to the same bits: IEEE division is correctly
-    rounded)."""
-    inv = 1.0 / direction
-    return Ray(origin, direction, tuple(origin[:, a] for a in range(3)),
-               tuple(inv[:, a] for a in range(3)), None, tuple(scale[:, a] for a in range(3)))
+def _lane_ray(origin, direction, frame, pad):
+    """The lane's :class:`jrt.engine.Ray` rebuilt from its world origin and direction, the
+    grid's ``frame`` and the margin ``pad`` (``jrt.engine.as_ray``): inside a conditional,
+    two [L, 3] operands rather than ten (1/d and ``o - frame`` are recomputed, to the same
+    bits: IEEE arithmetic is correctly rounded)."""
+    return as_ray(origin, direction, None, frame, pad)
 
 
-def _local(ray):
-    """The lane's origin in the grid's frame and its margin scale, [L, 3] each."""
-    return jnp.stack(ray.origin_axes, axis=1), jnp.stack(ray.origin_scale, axis=1)
-
-
-def _entry_of(row, origin, direction, scale):
-    ray = _lane_ray(origin, direction, scale)
+def _entry_of(row, origin, direction, frame, pad):
+    ray = _lane_ray(origin, direction, frame, pad)
     lo, hi, _, inv_size, n = _grid_row(row)
     return _entry(ray, lo, hi, inv_size, n)
 
 
-def _leap_of(row, origin, direction, scale, index, k):
-    ray = _lane_ray(origin, direction, scale)
+def _leap_of(row, origin, direction, frame, pad, index, k):
+    ray = _lane_ray(origin, direction, frame, pad)
     lo, hi, size, inv_size, n = _grid_row(row)
     return _leap(ray, lo, hi, size, inv_size, n, index, k)
 
@@ -183,8 +176,9 @@ def _step(arrays, ray, state, best_t, top, has_top):
     ix, iy, iz, te = state
     fresh = ix < 0
     # A fresh lane's entry (computed once, skipped when no lane is fresh).
-    origin, scale = _local(ray)
-    *entry, inside = computed_once(jnp.any(fresh), _entry_of, row, origin, ray.direction, scale)
+    frame = arrays["frame"]
+    *entry, inside = computed_once(jnp.any(fresh), _entry_of, row, ray.origin, ray.direction,
+                                   frame, ray.pad)
     ix, iy, iz, te = (jnp.where(fresh, a, b) for a, b in zip(entry, (ix, iy, iz, te),
                                                               strict=True))
     live = (inside | ~fresh) & (best_t > jnp.maximum(te, 0.0) * _SHRINK)
@@ -193,8 +187,8 @@ def _step(arrays, ray, state, best_t, top, has_top):
     first = starts[cell]
     count = starts[cell + 1] - first
     k = jnp.maximum(arrays["skip"][cell].astype(jnp.int32) - 1, 0)
-    jx, jy, jz, tjump, out = computed_once(jnp.any(live), _leap_of, row, origin,
-                                           ray.direction, scale, (ix, iy, iz), k)
+    jx, jy, jz, tjump, out = computed_once(jnp.any(live), _leap_of, row, ray.origin,
+                                           ray.direction, frame, ray.pad, (ix, iy, iz), k)
     # tjump = inf (a ray with no direction) makes the bound test true.
     finished = ~live | out | (best_t <= jnp.maximum(tjump, 0.0) * _SHRINK)
     zeros = jnp.zeros(ix.shape, bool)

@@ -24,10 +24,12 @@ def _crossings(ray, rows):
     axis = fields[:, 0]
     ox, oy, oz = ray.origin_axes
     ix, iy, iz = ray.inv_direction
-    sx, sy, sz = ray.origin_scale
     o = jnp.where(axis == 0, ox, jnp.where(axis == 1, oy, oz))
     inv = jnp.where(axis == 0, ix, jnp.where(axis == 1, iy, iz))
-    scale = jnp.where(axis == 0, sx, jnp.where(axis == 1, sy, sz))
+    scale = jnp.abs(o)  # the origin's magnitude on the axis (Ray.scale)
+    if ray.pad is not None:
+        scale = scale + jnp.where(axis == 0, ray.pad[0],
+                                  jnp.where(axis == 1, ray.pad[1], ray.pad[2]))
     delta = BOX_MARGIN * (jnp.abs(split) + scale)
     t_a = (split - delta - o) * inv
     t_b = (split + delta - o) * inv

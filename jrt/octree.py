@@ -9,7 +9,7 @@ visited in order of their entry, which handles the overlaps below the same way.
 
 The cells are in the tree's local frame (``accel.octree``), and so is the origin the
 steps read: ``o = ray.origin_axes``, the world origin minus ``frame``, with the
-magnitude ``s = ray.origin_scale`` (``|o|``, plus ``jrt.engine.margin_pad`` for a kernel
+magnitude ``s = ray.scale(axis)`` (``|o|``, plus ``jrt.engine.margin_pad`` for a kernel
 whose rounding depends on the world position). Per axis a, with ``g = centre_a - o_a``
 and ``delta = BOX_MARGIN (|centre_a| + s_a)``, the ray is within ``delta`` of the
 mid-plane for t between ``(g - delta)/d_a`` and ``(g + delta)/d_a``; call the smaller
@@ -109,7 +109,7 @@ def _plan(ray, rows, t0, t1, last, best_t):
     for a in range(3):
         o, inv, c = ray.origin_axes[a], ray.inv_direction[a], row[a]
         gap = c - o
-        delta = BOX_MARGIN * (jnp.abs(c) + ray.origin_scale[a])
+        delta = BOX_MARGIN * (jnp.abs(c) + ray.scale(a))
         p = (gap - delta) * inv
         q = (gap + delta) * inv
         far = jnp.minimum(p, q)

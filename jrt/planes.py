@@ -11,7 +11,7 @@ At an interior node the ray meets the plane ``n . x = c`` at ``t = (c - n . o) /
 (a kd-tree: one axis, ``(c - o[axis]) * inv_direction[axis]``). The structure's
 ``crossings`` function gives the two distances ``t_a, t_b`` at which the ray crosses the
 plane moved by ``-delta`` and ``+delta``, ``delta = BOX_MARGIN * (|c| + sum |n_i| s_i)``
-(``s = ray.origin_scale``, the origin's magnitude in the structure's local frame)
+(``s_i = ray.scale(i)``, the origin's magnitude in the structure's local frame)
 (the engine's margin, in space, as ``box_interval`` widens a box by its corner's and the
 origin's magnitudes), and whether the ray runs against the normal (``signbit(n . d)``).
 The child the ray is in first (below the plane for a ray along the normal) covers
