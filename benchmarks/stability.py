@@ -563,8 +563,11 @@ def aimed_rays(vertices, faces, count: int, seed: int = 11):
     v64 = v32.astype(np.float64)
     faces = np.asarray(faces)
     lo, hi = v64.min(axis=0), v64.max(axis=0)
-    cand = lo + rng.uniform(size=(4000, 3)) * (hi - lo)
-    inside = np.asarray(igl.winding_number(v64, faces.astype(np.int64), cand)) > 0.5
+    # Candidates rounded to float32 first, as the rays' origins are: far from the
+    # coordinate origin the rounding moves a point by an ulp, through a thin part.
+    cand = (lo + rng.uniform(size=(4000, 3)) * (hi - lo)).astype(np.float32)
+    inside = np.asarray(igl.winding_number(v64, faces.astype(np.int64),
+                                           cand.astype(np.float64))) > 0.5
     interior = cand[inside][:64]
     if len(interior) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
@@ -573,8 +576,8 @@ def aimed_rays(vertices, faces, count: int, seed: int = 11):
     midpoints = (v32[pick_e[:, 0]] + v32[pick_e[:, 1]]) * np.float32(0.5)
     targets = np.concatenate([v32[rng.integers(0, len(v32), count - count // 2)],
                               midpoints]).astype(np.float64)
-    origins = interior[rng.integers(0, len(interior), count)].astype(np.float32)
-    aim = targets - origins
+    origins = interior[rng.integers(0, len(interior), count)]
+    aim = targets - origins.astype(np.float64)
     length = np.linalg.norm(aim, axis=1, keepdims=True)
     keep = length[:, 0] > 0
     d = (aim[keep] / length[keep]).astype(np.float32)
@@ -1555,8 +1558,9 @@ def _anywhere_record(kind: str, rows: list, traced: list) -> dict:
             "worst_memory_x_origin": memory_x, "memory_at": memory_at,
             "references_per_leaf_at_origin": origin and origin["references_per_leaf"],
             "references_per_leaf_max": max(per_leaf) if per_leaf else None,
-            "cracks": sum(c["cracks"] for r in water for c in r["sweep"]
-                          if c["shift"] <= ANYWHERE_UP_TO),
+            # (Not "cracks": the per-kernel records count those, and the report sums them.)
+            "aimed_misses": sum(c["cracks"] for r in water for c in r["sweep"]
+                                if c["shift"] <= ANYWHERE_UP_TO),
             "mismatches_vs_brute": sum(c["mismatches_vs_brute"] for r in water
                                        for c in r["sweep"] if c["shift"] <= ANYWHERE_UP_TO),
             "beyond": [{"shift": r["shift"], **({"build_error": r["build_error"]}
@@ -1574,7 +1578,7 @@ def _findings_anywhere(records) -> str:
     parts = []
     fine = [r for r in records if not r["build_failures"]
             and (r["worst_build_time_x_origin"] or 0) <= 2
-            and (r["worst_memory_x_origin"] or 0) <= 2 and not r["cracks"]
+            and (r["worst_memory_x_origin"] or 0) <= 2 and not r["aimed_misses"]
             and not r["mismatches_vs_brute"]]
     if fine:
         parts.append(
@@ -1594,7 +1598,8 @@ def _findings_anywhere(records) -> str:
         parts.append(f"{r['structure']}: {r['build_failures']} failed builds, worst time "
                      f"{r['worst_build_time_x_origin'] or 0:.2f}x ({r['at']}), worst memory "
                      f"{r['worst_memory_x_origin'] or 0:.2f}x ({r['memory_at']}), "
-                     f"{r['cracks']} cracks, {r['mismatches_vs_brute']} rays unlike brute "
+                     f"{r['aimed_misses']} aimed rays missing (up to 10^6), "
+                     f"{r['mismatches_vs_brute']} rays unlike brute "
                      "force's.")
     beyond = {b["shift"] for r in records for b in r["beyond"]}
     for shift in sorted(beyond):

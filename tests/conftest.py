@@ -44,13 +44,25 @@ def pytest_collection_modifyitems(session, config, items):
 CAMEL_RAYS = 20_000
 
 
-@pytest.fixture(scope="session")
-def camel():
+def _mesh_or_skip(name: str):
+    """A study mesh through jrt's resolver; the test is skipped (with where it looked)
+    when the data is missing."""
     try:
-        path = camel_path("camel")
+        path = camel_path(name)
     except FileNotFoundError as exc:
         pytest.skip(str(exc))
     return load_mesh(path)
+
+
+@pytest.fixture(scope="session")
+def camel():
+    return _mesh_or_skip("camel")
+
+
+@pytest.fixture(scope="session")
+def camel19k():
+    """The 19k-triangle camel: the far-away, scaled and multi-mesh tests' smaller mesh."""
+    return _mesh_or_skip("camel-19k")
 
 
 @pytest.fixture(scope="session")

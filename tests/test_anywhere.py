@@ -42,14 +42,6 @@ def size_of(structure) -> int:
 
 
 @pytest.fixture(scope="module")
-def camel19k():
-    try:
-        return jrt.load_mesh(jrt.camel_path("camel-19k"))
-    except FileNotFoundError as error:
-        pytest.skip(str(error))
-
-
-@pytest.fixture(scope="module")
 def scenes(camel19k):
     """label -> (vertices, faces, origins, directions, brute force's hits)."""
     out = {}

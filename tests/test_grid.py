@@ -539,13 +539,6 @@ def transformed(vertices, offset, scale) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def camel19k():
-    if not jrt.data.has_camel("camel-19k"):
-        pytest.skip("camel-19k.off not found (set JRT_DATA)")
-    return jrt.load_mesh(jrt.camel_path("camel-19k"))
-
-
-@pytest.fixture(scope="module")
 def far_scenes(camel19k):
     """name -> (vertices, faces, origins, directions): the transformed camels, with
     incoherent rays aimed at them, and the two camels, with rays aimed at each and rays

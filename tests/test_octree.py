@@ -52,9 +52,7 @@ from accel.geometry import (
     triangles_overlap_boxes,
 )
 from accel.structure import Structure
-from jrt.data import camel_path
 from jrt.engine import POSITION_DEPENDENT_KERNELS, StackOverflowError
-from jrt.mesh import load_mesh
 from jrt.raysets import incoherent_set
 from jrt.trace import as_numpy
 
@@ -739,15 +737,6 @@ def aimed_rays(vertices, count, seed):
     return np.concatenate([o1, o2]), np.concatenate([d1, d2])
 
 
-@pytest.fixture(scope="module")
-def small_camel():
-    try:
-        path = camel_path("camel-19k")
-    except FileNotFoundError as exc:
-        pytest.skip(str(exc))
-    return load_mesh(path)
-
-
 #: The two-camel scene's depth limit (see test_two_camels_far_apart_match_brute).
 TWO_CAMELS_DEPTH = 14
 
@@ -762,21 +751,21 @@ def two_camels(camel):
 
 
 @pytest.fixture(scope="module")
-def far_camels(small_camel):
+def far_camels(camel19k):
     """name -> (vertices, faces, octree, the octree padded, brute force padded, origins,
     directions) for the camel at the origin, every case of FAR and "two camels". The
     padded structures share one shape, so each kernel compiles once for all of them. A
     moved mesh is also built moved back (exactly): "<name> back" (no rays)."""
-    faces = small_camel.faces
-    base = small_camel.vertices.astype(np.float64)
-    meshes = {"origin": (small_camel.vertices, faces)}
+    faces = camel19k.faces
+    base = camel19k.vertices.astype(np.float64)
+    meshes = {"origin": (camel19k.vertices, faces)}
     for name, (move, scale) in FAR.items():
         meshes[name] = ((base * scale + move).astype(np.float32), faces)
         if scale == 1.0:
             back = meshes[name][0].astype(np.float64) - move
             assert (back.astype(np.float32) == back).all()
             meshes[name + " back"] = (back.astype(np.float32), faces)
-    meshes["two camels"] = two_camels(small_camel)
+    meshes["two camels"] = two_camels(camel19k)
     trees = {name: octree.build(v, f, max_depth=TWO_CAMELS_DEPTH if name == "two camels"
                                 else None) for name, (v, f) in meshes.items()}
     rows = max(t["nodes"].shape[0] for t in trees.values())
