@@ -66,6 +66,7 @@ from accel.geometry import (
     degenerate_mask,
     leaf_bits_for,
     leaf_references,
+    local_frame,
     reference_margin,
     triangle_extents,
     triangle_vertices,
@@ -77,7 +78,6 @@ from accel.kdtree import (
     default_max_depth,
     finish_plane_tree,
     half_area,
-    local_frame,
     ranks_in_segments,
     split_cost,
 )

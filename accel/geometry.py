@@ -71,6 +71,18 @@ def local_corners(triangles: np.ndarray, frame: np.ndarray) -> np.ndarray:
         frame, np.float32).astype(np.float64)
 
 
+def local_frame(triangles: np.ndarray):
+    """A structure's frame and its geometry there: (``frame`` float32 [3], the corners
+    ``triangles - frame`` exactly, float64 [T, 3, 3], their box float32 [2, 3] rounded
+    outward so that it holds every corner; zeros when there are no triangles)."""
+    frame = frame_origin(triangles)
+    corners = local_corners(triangles, frame)
+    if not corners.shape[0]:
+        return frame, corners, np.zeros((2, 3), np.float32)
+    return frame, corners, np.stack([float32_down(corners.min(axis=(0, 1))),
+                                     float32_up(corners.max(axis=(0, 1)))]).astype(np.float32)
+
+
 def float32_down(x: np.ndarray) -> np.ndarray:
     """The largest float32 <= x (float64 in): a lower bound stored in float32."""
     x = np.asarray(x, np.float64)

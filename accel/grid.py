@@ -128,10 +128,7 @@ import numpy as np
 from accel.geometry import (
     CELL_MARGIN,
     degenerate_mask,
-    float32_down,
-    float32_up,
-    frame_origin,
-    local_corners,
+    local_frame,
     triangle_vertices,
     triangles_overlap_boxes,
     widen_boxes,
@@ -349,13 +346,7 @@ def build(
     # Every decision is taken in the local frame (module docstring): the corners relative
     # to a point of their box, exactly, in float64; the box stored in float32 rounded
     # outward, so that it still holds every corner.
-    frame = frame_origin(tris)
-    local = local_corners(tris, frame)
-    if t_count:
-        lo = float32_down(local.min(axis=(0, 1)))
-        hi = float32_up(local.max(axis=(0, 1)))
-    else:
-        lo = hi = np.zeros(3, np.float32)
+    frame, local, (lo, hi) = local_frame(tris)
     res = resolution(hi.astype(np.float64) - lo.astype(np.float64), t_count, density,
                      max_resolution)
     row = grid_row(lo, hi, res)

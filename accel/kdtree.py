@@ -84,12 +84,9 @@ import numpy as np
 
 from accel.geometry import (
     degenerate_mask,
-    float32_down,
-    float32_up,
-    frame_origin,
     leaf_bits_for,
     leaf_references,
-    local_corners,
+    local_frame,
     reference_margin,
     triangle_extents,
     triangle_vertices,
@@ -310,18 +307,6 @@ class _Pool:
         self.poly[:n], self.count[:n] = poly, count
         self.size = n
         return np.arange(n)
-
-
-def local_frame(tris: np.ndarray):
-    """A plane tree's frame: (frame float32 [3], the corners in it float64 [T, 3, 3], the
-    root cell float32 [2, 3], rounded outward so that it holds every corner; zeros when
-    there are no triangles). See ``accel.geometry.frame_origin``."""
-    frame = frame_origin(tris)
-    tri64 = local_corners(tris, frame)
-    if not tris.shape[0]:
-        return frame, tri64, np.zeros((2, 3), np.float32)
-    return frame, tri64, np.stack([float32_down(tri64.min(axis=(0, 1))),
-                                   float32_up(tri64.max(axis=(0, 1)))]).astype(np.float32)
 
 
 def ranks_in_segments(flags: np.ndarray, seg_first: np.ndarray, seg: np.ndarray) -> np.ndarray:
