@@ -17,9 +17,11 @@ The convention, in one place
   surface (reflectance 1) facing a unit lamp therefore hands over ``tables.illuminant``.
 * ``XYZ = k * sum_s radiance_s * cmf_s * weight_s`` with ``k = 1 / sum_s S_s * ybar_s *
   weight_s`` (CIE 15:2004 §7.1, eq. 7.1-7.2, relative colorimetry with Y of the perfect
-  reflecting diffuser = 1 instead of 100). So radiance = illuminant gives the lamp's white
-  point with **Y = 1** exactly (up to float32), whatever the number of samples.
-  :func:`reflectance_to_xyz` is the same with the illuminant multiplied in for you.
+  reflecting diffuser = 1 instead of 100), where ``S_s * cmf_s * weight_s`` is the integral
+  of ``S cmf`` over sample s's band (see Quadrature). So radiance = illuminant gives the
+  lamp's white point over [lo, hi], **Y = 1**, exactly (up to float32) and the same for any
+  number of samples. :func:`reflectance_to_xyz` is the same with the illuminant multiplied
+  in for you.
 * sRGB: linear ``RGB = M XYZ`` with IEC 61966-2-1's matrix (as colour-science gives it), then
   the IEC 61966-2-1 piecewise transfer curve. No chromatic adaptation: under illuminant A a
   white surface comes out warm (R > B), as a camera white-balanced for D65 would show it.
@@ -28,23 +30,30 @@ The convention, in one place
   linear channel to [0, 1] before the curve (negative -> 0, over-exposed -> 1). A per-channel
   hard clip: simple, but it shifts the hue of saturated colours (narrow spectral lines).
 
-Quadrature: the midpoint rule. [lo, hi] is cut into ``samples`` equal bins; the samples are
-the bin centres, each with weight ``(hi - lo) / samples`` nm. The tables are colour-science's
-data evaluated at those wavelengths with colour-science's own interpolators (Sprague 1880 for
-uniform 1 nm / 5 nm CMFs and the recovery basis, linear for the CIE illuminants: the choice
-``SpectralDistribution.interpolate`` makes) and constant extrapolation beyond the data, so
-that :func:`spectrum_to_xyz` reproduces ``colour.sd_to_XYZ(..., method="Integration")`` on
-the same wavelengths.
+Quadrature: band integrals. [lo, hi] is cut into ``samples`` equal bands; a sample stands
+for its band: its wavelength is the band's centre (where a glass's Cauchy index is
+evaluated), its weight the band's width. Each band integrates colour-science's data on the
+CIE tables' 1 nm grid (the CMFs as tabulated, the lamp and the basis by colour's own
+interpolators at the 1 nm nodes: linear for the CIE illuminants, Sprague 1880 for the 5 nm
+basis; constant beyond the data), linear between nodes, exactly for any band edges:
+``illuminant_s`` is the band mean of S, ``cmf_s`` the S-weighted band mean of the CMFs (so
+``S_s cmf_s weight_s = ∫_band S cmf dλ``), ``basis_s`` the band mean of the basis. A
+spectrum constant over each band therefore integrates exactly: a white or grey surface
+gives the lamp's white point (times its grey) with 1 sample as with 400, instead of the
+colour of whichever wavelengths the samples hit. With 400 bands of 1 nm over 380-780 nm
+the sums are colour's ``sd_to_XYZ(..., method="Integration")`` at the band centres up to
+the difference of the two 1 nm rules (XYZ within 2e-5 for the 24 ColorChecker patches).
 
-Accuracy (measured, D65 over 380-780 nm, linear sRGB). A white surface comes out (1.0065,
-0.9979, 1.0022) with 16 samples and (1.0010, 0.9994, 1.0039) with 32: within 1e-3 and 3e-4
-of white once encoded (R and B clip at 1). Against 400 samples, the 24 ColorChecker patches
-differ by at most 7e-3 (16 samples) and 4e-3 (32). :func:`rgb_to_reflectance` round trips
-random albedos within 0.09 (16), 0.022 (32) and 4e-4 (400): the Mallett basis has steep edges
-(near 490 and 590 nm) that 25 nm bins miss. With 400 samples the tables match colour-science
-to float32 precision, and the white matches the CIE D65 white point within the 4-decimal
-rounding of its xy (Z within 5e-4). Use 32 samples or more for colour fidelity, fewer for
-speed, :func:`rgb_tables` for scenes without dispersion.
+Accuracy (measured, D65 over 380-780 nm, linear sRGB). A white surface comes out (0.99996,
+1.00012, 0.99958) for every number of samples (within 1e-6): the CIE D65 white point
+through IEC 61966-2-1's matrix, which is built for the rounded xy (0.3127, 0.3290); so a
+grey is neutral to 5e-4 in linear sRGB, 2e-4 once encoded (a twentieth of an 8-bit step).
+Saturated colours still need samples: against 400, the 24 ColorChecker patches (reflectance
+taken at the sample wavelengths) differ by at most 0.27 (4 samples), 0.04 (8), 5e-3 (16)
+and 1.2e-3 (32). :func:`rgb_to_reflectance` round trips random albedos within 0.21 (4),
+0.03 (16), 6.4e-3 (32) and 5e-4 (400): the Mallett basis has steep edges (near 490 and
+590 nm) inside wide bands. Use 32 samples or more for colour fidelity, fewer for speed,
+:func:`rgb_tables` for scenes without dispersion.
 
 RGB mode (:func:`rgb_tables`): for scenes without dispersion the "samples" are the three
 linear sRGB channels and the same functions apply unchanged (see there).
@@ -79,14 +88,16 @@ class SpectralTables(NamedTuple):
     """The tables every conversion needs: float32 arrays, a JAX pytree (every field a leaf).
 
     Attributes:
-        wavelengths: [S] sample wavelengths, nm (bin centres; RGB mode: nominal labels).
-        weights: [S] quadrature weights, nm (the bin width; RGB mode: 1).
-        cmfs: [S, 3] CIE 1931 2° colour matching functions x̄, ȳ, z̄ at the samples
-            (RGB mode: the columns of the linear sRGB -> XYZ matrix).
-        illuminant: [S] the lamp's relative spectral power at the samples (RGB mode: the
-            lamp's linear sRGB colour with Y = 1).
+        wavelengths: [S] sample wavelengths, nm (band centres; RGB mode: nominal labels).
+        weights: [S] quadrature weights, nm (the band width; RGB mode: 1).
+        cmfs: [S, 3] CIE 1931 2° colour matching functions x̄, ȳ, z̄ over each band,
+            averaged with the lamp's spectrum as weight, so that ``illuminant * cmfs *
+            weights`` is ``∫_band S cmf dλ`` (RGB mode: the columns of the linear sRGB ->
+            XYZ matrix).
+        illuminant: [S] the lamp's relative spectral power, its mean over each band (RGB
+            mode: the lamp's linear sRGB colour with Y = 1).
         basis: [S, 3] reflectance basis: ``reflectance = rgb @ basis.T`` (Mallett & Yuksel
-            2019 resampled at the samples; RGB mode: the identity).
+            2019, its mean over each band; RGB mode: the identity).
         xyz_to_rgb: [3, 3] XYZ -> linear sRGB matrix (IEC 61966-2-1).
         k: [] normalisation, ``1 / sum(illuminant * cmfs[:, 1] * weights)``: a perfect white
             reflector under the lamp has Y = 1 (RGB mode: 1).
@@ -169,26 +180,64 @@ def _validate(samples, lo, hi) -> tuple[int, float, float]:
     return n, lo_f, hi_f
 
 
+#: The integration grid: the CIE 1931 tables' own 1 nm nodes, 360-830 nm.
+_GRID = np.arange(WAVELENGTH_MIN, WAVELENGTH_MAX + 0.5, 1.0)
+
+
+def _band_integrals(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``∫_{edges[i]}^{edges[i+1]} f(λ) dλ`` of the linear interpolant of ``values`` [G, ...]
+    tabulated on :data:`_GRID`, for each band i: exact for any real edges in [360, 830].
+
+    With ``F`` the running integral (the trapezoid rule on the 1 nm nodes, continued
+    quadratically inside a 1 nm cell), a band's integral is ``F(b) - F(a)``; so the bands
+    of a partition of [lo, hi] add up to ``F(hi) - F(lo)``, whatever the partition.
+    """
+    v = np.asarray(values, np.float64)
+    cells = (v[1:] + v[:-1]) / 2.0  # ∫ over each 1 nm cell
+    running = np.concatenate([np.zeros((1,) + v.shape[1:]), np.cumsum(cells, axis=0)])
+    j = np.clip(np.floor(edges - WAVELENGTH_MIN).astype(np.int64), 0, len(_GRID) - 2)
+    t = (edges - _GRID[j]).reshape((-1,) + (1,) * (v.ndim - 1))
+    at = running[j] + v[j] * t + (v[j + 1] - v[j]) * t * t / 2.0
+    return at[1:] - at[:-1]
+
+
 def _tables_f64(samples, illuminant, lo, hi) -> dict[str, np.ndarray]:
     n, lo, hi = _validate(samples, lo, hi)
     lamp = _illuminant_sd(illuminant)
     width = (hi - lo) / n
-    # Midpoint rule: bin centres lo + (i + 1/2) h, each weighted by the bin width h.
-    wavelengths = lo + (np.arange(n, dtype=np.float64) + 0.5) * width
-    weights = np.full(n, width)
-    cmfs = _evaluate(colour.MSDS_CMFS[OBSERVER], wavelengths).reshape(n, 3)
-    spd = _evaluate(lamp, wavelengths).reshape(n)
+    # S equal bands over [lo, hi]; a sample's wavelength is its band's centre.
+    edges = lo + np.arange(n + 1, dtype=np.float64) * width
+    edges[-1] = hi
+    wavelengths = (edges[:-1] + edges[1:]) / 2.0
+    weights = np.diff(edges)
+    # colour's data on its 1 nm grid (colour's interpolators between its own nodes).
+    cmf_grid = _evaluate(colour.MSDS_CMFS[OBSERVER], _GRID).reshape(-1, 3)
+    spd_grid = _evaluate(lamp, _GRID).reshape(-1)
     # Mallett & Yuksel 2019, "Spectral Primary Decomposition for Rendering with sRGB
     # Reflectance" (EGSR): three non-negative basis spectra summing to 1 at every wavelength,
     # so rgb in [0, 1]^3 gives a reflectance in [0, 1] and white (1, 1, 1) gives 1.
-    basis = _evaluate(colour.recovery.MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019, wavelengths)
-    basis = basis.reshape(n, 3)
-    # CIE 15:2004 eq. 7.2: k = 100 / sum(S ybar dλ); here scaled to Y = 1, not 100.
-    y_white = float(np.sum(spd * cmfs[:, 1] * weights))
+    basis_grid = _evaluate(colour.recovery.MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019, _GRID)
+    basis_grid = basis_grid.reshape(-1, 3)
+    # Band integrals: ∫_band S, ∫_band S cmf, ∫_band cmf, ∫_band basis.
+    spd_band = _band_integrals(spd_grid, edges)
+    lit_cmf_band = _band_integrals(spd_grid[:, None] * cmf_grid, edges)
+    cmf_band = _band_integrals(cmf_grid, edges)
+    basis_band = _band_integrals(basis_grid, edges)
+    # illuminant_i * cmfs_i * weights_i = ∫_band S cmf: the band mean of S times the
+    # S-weighted band mean of the CMFs (the plain mean where the lamp is dark in the band).
+    illuminant_mean = spd_band / weights
+    dark = ~(spd_band > 0.0)
+    cmfs = np.where(
+        dark[:, None], cmf_band / weights[:, None],
+        lit_cmf_band / np.where(dark, 1.0, spd_band)[:, None],
+    )
+    basis = basis_band / weights[:, None]
+    # CIE 15:2004 eq. 7.2: k = 100 / ∫ S ybar dλ; here scaled to Y = 1, not 100.
+    y_white = float(np.sum(lit_cmf_band[:, 1]))
     if not y_white > 0.0:
         raise ValueError(
             f"illuminant {getattr(lamp, 'name', illuminant)!r} has no luminance on "
-            f"[{lo:g}, {hi:g}] nm with {n} sample(s): sum(S ybar dλ) = {y_white:g}"
+            f"[{lo:g}, {hi:g}] nm: ∫ S ybar dλ = {y_white:g}"
         )
     # IEC 61966-2-1 XYZ -> linear sRGB (the standard's 4-decimal matrix, as colour gives it).
     xyz_to_rgb = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB, np.float64)
@@ -196,7 +245,7 @@ def _tables_f64(samples, illuminant, lo, hi) -> dict[str, np.ndarray]:
         "wavelengths": wavelengths,
         "weights": weights,
         "cmfs": cmfs,
-        "illuminant": spd,
+        "illuminant": illuminant_mean,
         "basis": basis,
         "xyz_to_rgb": xyz_to_rgb,
         "k": np.asarray(1.0 / y_white),
@@ -218,10 +267,10 @@ def spectral_tables(
     """Tables for ``samples`` wavelengths over [lo, hi] nm under the named lamp.
 
     Args:
-        samples: number of wavelength samples S >= 1: the centres of S equal bins over
-            [lo, hi] (midpoint rule, weight = bin width). ``samples=1`` is one wavelength,
-            (lo + hi) / 2, for monochromatic debugging: a white surface then shows that
-            spectral line's colour at Y = 1, far outside the sRGB gamut (clipped on encoding).
+        samples: number of wavelength samples S >= 1: S equal bands over [lo, hi], each
+            integrated (see the module's Quadrature), at wavelength its centre, weight its
+            width. Whites and greys come out right for any S; ``samples=1`` is one band:
+            the lamp's white point, no dispersion (one index, at (lo + hi) / 2).
         illuminant: the lamp's spectrum: a name from ``colour.SDS_ILLUMINANTS`` ("D65", "A",
             "D50", "E", "FL2", ...) or a ``colour.SpectralDistribution``.
         lo, hi: the wavelength range, nm, with 360 <= lo < hi <= 830 (CIE 1931 tables).
@@ -244,11 +293,11 @@ def rgb_tables(illuminant: str | colour.SpectralDistribution = "D65") -> Spectra
     no chromatic adaptation. For D65 that is (1, 1, 1) to about 1e-4 (the IEC matrix is
     rounded to 4 decimals). ``wavelengths`` are nominal labels (:data:`RGB_NOMINAL_WAVELENGTHS`).
     """
-    fine = _tables_f64(470, illuminant, WAVELENGTH_MIN, WAVELENGTH_MAX)
-    white_xyz = fine["k"] * np.sum(
-        (fine["illuminant"] * fine["weights"])[:, None] * fine["cmfs"], axis=0
+    whole = _tables_f64(1, illuminant, WAVELENGTH_MIN, WAVELENGTH_MAX)  # one band: exact
+    white_xyz = whole["k"] * np.sum(
+        (whole["illuminant"] * whole["weights"])[:, None] * whole["cmfs"], axis=0
     )
-    xyz_to_rgb = fine["xyz_to_rgb"]
+    xyz_to_rgb = whole["xyz_to_rgb"]
     return _to_tables(
         {
             "wavelengths": np.asarray(RGB_NOMINAL_WAVELENGTHS),
@@ -272,7 +321,7 @@ def spectrum_to_xyz(
 ) -> Float[Array, "*batch 3"]:
     """CIE XYZ of per-sample radiance (lamp units: the illuminant already multiplied in).
 
-    ``XYZ = k * sum_s radiance_s * cmf_s * weight_s`` (CIE 15:2004 eq. 7.1, midpoint rule),
+    ``XYZ = k * sum_s radiance_s * cmf_s * weight_s`` (CIE 15:2004 eq. 7.1, over the bands),
     so ``radiance = tables.illuminant`` (a white diffuser) gives the lamp's white point, Y = 1.
     """
     matrix = tables.cmfs * (tables.k * tables.weights)[:, None]
@@ -337,9 +386,11 @@ def rgb_to_reflectance(
 
     Linear in rgb, so cheap and differentiable. For rgb in [0, 1]^3 the reflectance lies in
     [0, 1] (the basis is non-negative and sums to 1, to 1e-5 in the published data); rgb
-    outside [0, 1] is not clipped and extrapolates linearly. Lit by D65 and integrated back,
-    the spectrum reproduces the rgb within 4e-4 with 400 samples, but only within 0.09 with
-    16 and 0.022 with 32 for saturated colours (the basis's steep edges fall between samples:
-    see the module's accuracy notes). RGB mode: returns rgb itself.
+    outside [0, 1] is not clipped and extrapolates linearly. A grey (g, g, g) gives the flat
+    reflectance g for any number of samples (the band means sum to 1 as the basis does).
+    Lit by D65 and integrated back, the spectrum reproduces the rgb within 5e-4 with 400
+    samples, but only within 0.03 with 16 and 6.4e-3 with 32 for saturated colours (the
+    basis's steep edges inside wide bands: see the module's accuracy notes). RGB mode:
+    returns rgb itself.
     """
     return jnp.asarray(rgb, jnp.float32) @ tables.basis.T
