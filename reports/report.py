@@ -28,6 +28,12 @@ with fitted exponents; the cost model; error against run time; the stability sui
 tables and findings; renders given with ``--image``; the machine and library versions.
 Every figure names, in its caption and in the image, the command that made its data.
 Figures are drawn by matplotlib's Agg canvas (no pyplot state, no display needed).
+
+What a run can support: a quick run (``parameters.quick``, or, where unrecorded, small ray
+sets or fewer than three warm calls) is marked indicative at the top, in its sections and
+in its figures; a power law is fitted only through three or more sizes (two fit any); one
+structure is ranked ahead of another only where the min..max of their repeats do not
+overlap, and the others are called tied within the run's spread.
 """
 
 from __future__ import annotations
@@ -381,6 +387,8 @@ class Inputs:
     work_precision: list[tuple[Path, dict, str]] = field(default_factory=list)
     kinds: list[tuple[Path, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    #: Why a file's numbers are indicative only (a quick run), by file; absent when full.
+    indicative: dict[Path, str] = field(default_factory=dict)
 
 
 def read_json(path: Path):
@@ -469,10 +477,17 @@ def load_inputs(paths) -> Inputs:
                                       f"\"records\" list; expected the JSON written by "
                                       f"`{STABILITY_COMMAND}`")
             inputs.stability.append((path, data))
+            if stability_indicative(data):
+                inputs.indicative[path] = stability_indicative(data)
         else:
             records = data if isinstance(data, list) else data["records"]
             cmd = (None if isinstance(data, list) else _recorded_command(data))
             inputs.work_precision += [(path, r, r.get("command") or cmd or "") for r in records]
+            if wp_indicative(data):
+                inputs.indicative[path] = wp_indicative(data)
+    for b in inputs.bench:
+        if bench_indicative(b):
+            inputs.indicative[b.path] = bench_indicative(b)
     if len(inputs.bench) > 1:
         for i, b in enumerate(inputs.bench, 1):
             b.label = f"run {i} (`{b.path.name}`)"
@@ -563,6 +578,165 @@ def stability_command(data: dict, path: Path) -> str:
 
 
 # ============================================================================================
+# What a run supports: indicative runs, power-law fits, ranks within the spread
+# ============================================================================================
+
+#: A power law is fitted only through this many distinct sizes: through two, any power law
+#: fits exactly and the exponent carries all the noise of two timings.
+MIN_FIT_SIZES = 3
+#: The words that mark the numbers of a quick input (top of the report, sections, captions).
+INDICATIVE = "indicative only"
+#: Where a run does not record whether it is quick: ray sets under this many rays, or fewer
+#: warm calls than MIN_REPEATS, make it indicative.
+SMALL_RAYS = 65536
+MIN_REPEATS = 3
+TIED = "tied within the run's spread"
+
+
+def bench_indicative(b: Bench) -> str:
+    """Why a benchmark run's numbers are indicative ("" for a full run): its ``quick`` flag
+    (``parameters.quick``), or, where it records none, small ray sets or few warm calls."""
+    p = b.params
+    rays = [s.get("rays") for s in p.get("sets") or [] if isinstance(s, dict)]
+    rays = [r for r in rays if _count(r)] or [_count(t.get("rays")) for t in b.of("trace")
+                                             if _count(t.get("rays"))]
+    repeats = p.get("repeats") if _count(p.get("repeats")) else min(
+        (len(t["repeats"]) for t in b.of("trace") if isinstance(t.get("repeats"), list)),
+        default=None)
+    sizes = {row.get("triangles") for r in b.of("scaling") for row in _dicts(r.get("rows"))
+             if _count(row.get("triangles"))}
+    quick = p.get("quick")
+    if not isinstance(quick, bool):
+        quick = bool(rays and max(rays) < SMALL_RAYS) or (repeats or 0) < MIN_REPEATS
+    if not quick:
+        return ""
+    parts = []
+    if rays:
+        parts.append(("small ray sets, " if max(rays) < SMALL_RAYS else "") + f"{min(rays):,}"
+                     + (f"–{max(rays):,}" if max(rays) > min(rays) else "") + " rays a set")
+    if repeats:
+        parts.append(_plural(repeats, "warm call") + " per set")
+    if sizes:
+        parts.append(_plural(len(sizes), "scaling size"))
+    return ("quick run" if p.get("quick") is True else "small run") + (
+        f" ({', '.join(parts)})" if parts else "")
+
+
+def stability_indicative(data: dict) -> str:
+    return ("quick run (small sizes)" if data.get("quick") is True or data.get("size") == "quick"
+            else "")
+
+
+def wp_indicative(data) -> str:
+    p = data.get("parameters") if isinstance(data, dict) else None
+    return ("quick points (fewer points, smaller images)"
+            if isinstance(p, dict) and p.get("quick") is True else "")
+
+
+def _mark(reason: str) -> str:
+    """The sentence that marks a quick input's section or figure ("" for a full one)."""
+    return f"**{INDICATIVE.capitalize()}**: {reason}." if reason else ""
+
+
+def _section_mark(b: Bench) -> str:
+    """The mark as a sentence to open a quick run's section paragraph with ("" if full)."""
+    reason = bench_indicative(b)
+    return _mark(reason) + " " if reason else ""
+
+
+def _marked(caption: str, reason: str) -> str:
+    """A figure caption with the mark before its ``Data:`` (captions are italic already)."""
+    if not reason:
+        return caption
+    mark = f"{INDICATIVE.capitalize()}: {reason}."
+    return caption.replace(" Data: ", f" {mark} Data: ", 1) if " Data: " in caption else (
+        f"{caption} {mark}")
+
+
+def fit_power(xs, ys) -> float | None:
+    """k of ``y ~ c x^k``: the least-squares slope of log y against log x over the points
+    with positive x and y, or None with fewer than MIN_FIT_SIZES distinct x among them."""
+    pts = [(math.log(x), math.log(y)) for x, y in zip(xs, ys, strict=True)
+           if x is not None and y is not None and x > 0 and y > 0]
+    if len({x for x, _ in pts}) < MIN_FIT_SIZES:
+        return None
+    mx, my = (sum(p[i] for p in pts) / len(pts) for i in (0, 1))
+    return (sum((x - mx) * (y - my) for x, y in pts) / sum((x - mx) ** 2 for x, _ in pts))
+
+
+def scaling_fits(rec: dict) -> tuple[float | None, float | None, int]:
+    """A scaling record's build- and trace-time exponents, fitted here from its rows'
+    medians (not the exponents the run recorded: those are fitted through any two sizes),
+    and its number of distinct sizes."""
+    rows = [row for row in _dicts(rec.get("rows")) if _count(row.get("triangles"))]
+    n = [row["triangles"] for row in rows]
+    fits = [fit_power(n, [_median(row.get(key)) for row in rows])
+            for key in ("build_seconds", "trace_seconds")]
+    return fits[0], fits[1], len(set(n))
+
+
+def _not_fitted(sizes: int) -> str:
+    return f"not fitted ({_plural(sizes, 'size')}; {MIN_FIT_SIZES} needed)"
+
+
+def _interval(values) -> tuple[float, float] | None:
+    """min..max of two or more timings; None with fewer (no spread to order by)."""
+    xs = [float(v) for v in values if isinstance(v, int | float) and not isinstance(v, bool)
+          and math.isfinite(v) and v > 0] if isinstance(values, list) else []
+    return (min(xs), max(xs)) if len(xs) >= 2 else None
+
+
+def rate_spread(rec: dict) -> tuple[float, float] | None:
+    """min..max Mrays/s of a trace's warm calls: from its per-call times (``repeats``) and
+    ray count, else its rate's recorded min and max; None with one call."""
+    times, rays = _interval(rec.get("repeats")), _count(rec.get("rays"))
+    if times and rays:
+        return rays / times[1] / 1e6, rays / times[0] / 1e6
+    rate = rec.get("mrays_per_s")
+    lo, hi = (_median(rate.get(k)) for k in ("min", "max")) if isinstance(rate, dict) else (
+        None, None)
+    return (lo, hi) if lo and hi and lo < hi else None
+
+
+def build_spread(rec: dict) -> tuple[float, float] | None:
+    """min..max seconds of a structure's builds (``repeats``, else ``seconds``' min, max)."""
+    times = _interval(rec.get("repeats"))
+    if times:
+        return times
+    s = rec.get("seconds")
+    lo, hi = (_median(s.get(k)) for k in ("min", "max")) if isinstance(s, dict) else (None,
+                                                                                      None)
+    return (lo, hi) if lo and hi and lo < hi else None
+
+
+def _ahead(values: dict, a: str, b: str, higher: bool = True) -> bool:
+    """``a`` certainly ahead of ``b``: their min..max intervals do not overlap."""
+    ia, ib = values[a][1], values[b][1]
+    if ia is None or ib is None:
+        return False
+    return ia[0] > ib[1] if higher else ia[1] < ib[0]
+
+
+def places(values: dict, higher: bool = True) -> dict[str, tuple[int, int]]:
+    """Each name's possible places (best, worst), 1 the first, from {name: (value, min..max
+    or None)}: one name is ahead of another only when their intervals do not overlap, so a
+    name tied with others spans their places; no interval, no order."""
+    return {n: (1 + sum(_ahead(values, o, n, higher) for o in values if o != n),
+                len(values) - sum(_ahead(values, n, o, higher) for o in values if o != n))
+            for n in values}
+
+
+def tied_with(name: str, values: dict, higher: bool = True) -> list[str]:
+    """The names neither certainly ahead of ``name`` nor certainly behind it."""
+    return [o for o in values if o != name and not _ahead(values, o, name, higher)
+            and not _ahead(values, name, o, higher)]
+
+
+def _place(rank: tuple[int, int]) -> str:
+    return str(rank[0]) if rank[0] == rank[1] else f"{rank[0]}–{rank[1]}"
+
+
+# ============================================================================================
 # Figures (matplotlib's Agg canvas, no pyplot)
 # ============================================================================================
 
@@ -601,13 +775,14 @@ def _plain_log(*axes) -> None:
                 axis.set_minor_formatter(Plain(labelOnlyBase=False))
 
 
-def _save(fig, file: Path, command: str, layout: bool = True) -> None:
-    """Name the command under the plot, lay out (not for figures whose colour bars
-    tight_layout cannot place: ``layout=False``), write a PNG."""
+def _save(fig, file: Path, command: str, layout: bool = True, note: str = "") -> None:
+    """Name the command under the plot (after ``note``: why its numbers are indicative, if
+    they are), lay out (not for figures whose colour bars tight_layout cannot place:
+    ``layout=False``), write a PNG."""
     _plain_log(*fig.axes)
     width, height = fig.get_size_inches()
-    lines = textwrap.wrap(f"data: {command}", width=max(40, int(width * 15.5)),
-                          break_on_hyphens=False)
+    text = (f"{INDICATIVE}: {note}; " if note else "") + f"data: {command}"
+    lines = textwrap.wrap(text, width=max(40, int(width * 15.5)), break_on_hyphens=False)
     fig.text(0.01, 0.01, "\n".join(lines), fontsize=7, family="monospace", color="0.3",
              ha="left", va="bottom")
     if layout:
@@ -652,7 +827,7 @@ def fig_rates(b: Bench, file: Path) -> None:
     ax.grid(axis="y", which="both", alpha=0.3)
     ax.legend(fontsize=8, ncol=min(len(names) + 1, 6), loc="upper center",
               bbox_to_anchor=(0.5, -0.16), frameon=False)
-    _save(fig, file, b.command)
+    _save(fig, file, b.command, note=bench_indicative(b))
 
 
 def fig_bars(b: Bench, file: Path, values: dict, errors: dict | None, ylabel: str,
@@ -672,12 +847,12 @@ def fig_bars(b: Bench, file: Path, values: dict, errors: dict | None, ylabel: st
     ax.set_title(title + (f" — {b.path.name}" if b.label else ""))
     ax.grid(axis="y", alpha=0.3)
     ax.set_ylim(0, max(ys) * 1.15 if ys else 1)
-    _save(fig, file, b.command)
+    _save(fig, file, b.command, note=bench_indicative(b))
 
 
 def _fit_line(ax, xs, ys, exponent, colour) -> None:
     """The fitted power law y = c N^exponent through the points (least squares in log c)."""
-    if exponent is None or len(xs) < 2:
+    if exponent is None or len(set(xs)) < MIN_FIT_SIZES:
         return
     logc = sum(math.log(y) - exponent * math.log(x) for x, y in zip(xs, ys, strict=True))
     logc /= len(xs)
@@ -689,7 +864,7 @@ def fig_scaling(b: Bench, file: Path) -> None:
     recs = {r["structure"]: r for r in b.of("scaling") if isinstance(r.get("structure"), str)}
     names = [n for n in b.structures if n in recs] + [n for n in recs if n not in b.structures]
     fig, (ax_b, ax_t) = _new_figure(11.0, 4.4, ncols=2)
-    embree_pts = {}
+    embree_pts, fitted, sizes = {}, False, 0
     for name in names:
         r = recs[name]
         rows = sorted((row for row in _dicts(r.get("rows")) if _count(row.get("triangles"))),
@@ -698,7 +873,8 @@ def fig_scaling(b: Bench, file: Path) -> None:
         n = [row["triangles"] for row in rows]
         build = [_median(row.get("build_seconds")) for row in rows]
         rate = [_median(row.get("mrays_per_s")) for row in rows]
-        be, te = r.get("build_exponent"), r.get("trace_exponent")
+        be, te, sizes = scaling_fits(r)
+        fitted = fitted or be is not None or te is not None
         pts = [(x, y) for x, y in zip(n, build, strict=True) if y]
         if pts:
             label = name + (f": N^{be:.2f}" if isinstance(be, int | float) else "")
@@ -726,8 +902,9 @@ def fig_scaling(b: Bench, file: Path) -> None:
         ax.set_ylabel(ylabel)
         ax.set_title(title + (f" — {b.path.name}" if b.label else ""))
         ax.grid(which="both", alpha=0.3)
-        ax.legend(fontsize=7.5, title="fitted exponent", title_fontsize=7.5)
-    _save(fig, file, b.command)
+        ax.legend(fontsize=7.5, title="fitted exponent" if fitted else
+                  f"exponents {_not_fitted(sizes)}", title_fontsize=7.5)
+    _save(fig, file, b.command, note=bench_indicative(b))
 
 
 def fig_cost_model(b: Bench, file: Path) -> None:
@@ -765,11 +942,11 @@ def fig_cost_model(b: Bench, file: Path) -> None:
     ax.set_ylabel("measured ns per ray (wall clock)")
     ax.set_title("Cost model fit" + (f" — {b.path.name}" if b.label else ""))
     ax.grid(which="both", alpha=0.3)
-    _save(fig, file, b.command)
+    _save(fig, file, b.command, note=bench_indicative(b))
 
 
 def fig_work_precision(points: list[dict], metrics: list[tuple], file: Path, title: str,
-                       command: str) -> None:
+                       command: str, note: str = "") -> None:
     fig, axes = _new_figure(max(5.0, 4.6 * len(metrics)), 4.2, ncols=len(metrics))
     series = list(dict.fromkeys(p["series"] for p in points))
     from matplotlib import colormaps
@@ -795,7 +972,7 @@ def fig_work_precision(points: list[dict], metrics: list[tuple], file: Path, tit
         ax.grid(which="both", alpha=0.3)
     axes[0].legend(fontsize=7.5)
     fig.suptitle(title, fontsize=11)
-    _save(fig, file, command)
+    _save(fig, file, command, note=note)
 
 
 # ============================================================================================
@@ -821,6 +998,7 @@ def section_structures(doc: Doc, b: Bench, out: Path, prefix: str) -> None:
     p, sets, names = b.params, b.sets, b.structures
     builds, traces, embree = b.builds, b.traces, b.embree
     doc.heading(2, "The structures side by side" + (f": {b.label}" if b.label else ""))
+    mark = bench_indicative(b)
     mesh = p.get("mesh") or "the mesh"
     tris = p.get("triangles")
     set_desc = []
@@ -829,7 +1007,8 @@ def section_structures(doc: Doc, b: Bench, out: Path, prefix: str) -> None:
         set_desc.append(f"{s} ({b.query(s)}" + (f", {rays:,} rays)" if isinstance(rays, int)
                                                 else ")"))
     doc.para(
-        f"Mesh: `{mesh}`" + (f" ({tris:,} triangles)" if isinstance(tris, int) else "")
+        _section_mark(b) + f"Mesh: `{mesh}`"
+        + (f" ({tris:,} triangles)" if isinstance(tris, int) else "")
         + (f"; kernel `{p['kernel']}`" if p.get("kernel") else "")
         + (f"; ray sets: {_join(set_desc)}" if set_desc else "")
         + (f"; {p['repeats']} warm calls per structure and set (median, min, max)"
@@ -913,10 +1092,10 @@ def section_structures(doc: Doc, b: Bench, out: Path, prefix: str) -> None:
     if traces:
         f = out / "figures" / f"{prefix}rates.png"
         fig_rates(b, f)
-        doc.figure(f, f"figures/{f.name}",
+        doc.figure(f, f"figures/{f.name}", _marked(
                    "Mrays/s per ray set and structure (bars: median, whiskers: min–max of the "
                    f"warm calls; log scale), Embree's median on the same rays dashed. "
-                   f"Data: `{b.command}`.")
+                   f"Data: `{b.command}`.", mark))
     values = {n: _median(builds[n].get("seconds")) for n in names if n in builds}
     if any(v is not None for v in values.values()):
         err = {n: (_median(builds[n]["seconds"].get("min")) or values[n],
@@ -926,15 +1105,16 @@ def section_structures(doc: Doc, b: Bench, out: Path, prefix: str) -> None:
         f = out / "figures" / f"{prefix}build.png"
         fig_bars(b, f, values, err if len(err) == len([v for v in values.values() if v])
                  else None, "build time (s)", "Build time (median, min–max)")
-        doc.figure(f, f"figures/{f.name}",
+        doc.figure(f, f"figures/{f.name}", _marked(
                    f"Build time per structure (median of the builds, whiskers min–max). "
-                   f"Data: `{b.command}`.")
+                   f"Data: `{b.command}`.", mark))
     values = {n: _mib(builds[n]) for n in names if n in builds}
     if any(v is not None for v in values.values()):
         f = out / "figures" / f"{prefix}memory.png"
         fig_bars(b, f, values, None, "memory (MiB)", "Memory of the structure's arrays")
-        doc.figure(f, f"figures/{f.name}",
-                   f"Memory per structure (bytes of its arrays, MiB). Data: `{b.command}`.")
+        doc.figure(f, f"figures/{f.name}", _marked(
+                   f"Memory per structure (bytes of its arrays, MiB). Data: `{b.command}`.",
+                   mark))
 
 
 def fig_heatmaps(b: Bench, recs: list[dict], file: Path) -> None:
@@ -962,7 +1142,7 @@ def fig_heatmaps(b: Bench, recs: list[dict], file: Path) -> None:
         fig.colorbar(shown, ax=list(axes[row]), label=label, shrink=0.85, pad=0.02)
     fig.suptitle("Per-pixel cost of the camera rays" + (f" — {b.path.name}" if b.label else ""),
                  fontsize=10)
-    _save(fig, file, b.command, layout=False)
+    _save(fig, file, b.command, layout=False, note=bench_indicative(b))
 
 
 def section_heatmaps(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
@@ -974,7 +1154,8 @@ def section_heatmaps(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
         return False
     doc.heading(3, "Per-pixel cost" + (f": {b.label}" if b.label else ""))
     block = recs[0].get("block", 1)
-    doc.para("Where each structure spends its work: the engine's counters for every camera "
+    doc.para(_section_mark(b)
+             + "Where each structure spends its work: the engine's counters for every camera "
              "ray (one per pixel), traversal steps and triangle tests, averaged over "
              f"{block}x{block} pixel blocks. Bright cells are rays that visit many nodes or "
              "cells, or test many triangles; the table gives, per structure, the mean, the "
@@ -993,10 +1174,10 @@ def section_heatmaps(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
                "top 10 %"], rows)
     f = out / "figures" / f"{prefix}heatmaps.png"
     fig_heatmaps(b, recs, f)
-    doc.figure(f, f"figures/{f.name}",
+    doc.figure(f, f"figures/{f.name}", _marked(
                "Traversal steps (top) and triangle tests (bottom) per camera ray, one column "
                "per structure, one colour scale per row (clipped at the 99.5th percentile). "
-               f"Data: `{b.command}`.")
+               f"Data: `{b.command}`.", bench_indicative(b)))
     return True
 
 
@@ -1006,9 +1187,11 @@ def section_scaling(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
         return False
     doc.heading(3, "Scaling" + (f": {b.label}" if b.label else ""))
     rays = recs[0].get("rays")
-    doc.para("Build time and camera-ray rate against the number of triangles N"
+    doc.para(_section_mark(b) + "Build time and camera-ray rate against the number of "
+             "triangles N"
              + (f" ({rays:,} camera rays on each mesh)" if isinstance(rays, int) else "")
-             + "; exponents are the slope of log(time) against log(N). "
+             + "; exponents are the least-squares slope of log(time) against log(N), fitted "
+             f"only through {MIN_FIT_SIZES} or more sizes (through two, any power law fits). "
              f"Data: `{b.command}`.")
     rows = []
     for r in recs:
@@ -1018,14 +1201,19 @@ def section_scaling(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
                          num(_median(row.get("mrays_per_s"))), num(row.get("ratio_to_embree"))])
     doc.table(["structure", "mesh", "triangles", "build (s)", "ns per N log2 N", "Mrays/s",
                "x Embree"], rows)
+    fits = [(r.get("structure"), *scaling_fits(r)) for r in recs]
     doc.table(["structure", "build time ~ N^", "trace time ~ N^"],
-              [[r.get("structure"), num(r.get("build_exponent")), num(r.get("trace_exponent"))]
-               for r in recs])
+              [[name, *(num(k) if k is not None else _not_fitted(sizes) for k in (be, te))]
+               for name, be, te, sizes in fits])
     f = out / "figures" / f"{prefix}scaling.png"
     fig_scaling(b, f)
-    doc.figure(f, f"figures/{f.name}",
-               "Build time and camera Mrays/s against N (log-log), fitted exponents in the "
-               f"legend, Embree's rate on the same rays in black. Data: `{b.command}`.")
+    legend = ("fitted exponents in the legend" if any(
+        k is not None for fit in fits for k in fit[1:3]) else
+        f"no exponent fitted ({_plural(max(fit[3] for fit in fits), 'size')}; "
+        f"{MIN_FIT_SIZES} needed)")
+    doc.figure(f, f"figures/{f.name}", _marked(
+               f"Build time and camera Mrays/s against N (log-log), {legend}, Embree's rate "
+               f"on the same rays in black. Data: `{b.command}`.", bench_indicative(b)))
     return True
 
 
@@ -1035,7 +1223,8 @@ def section_cost_model(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
         return False
     doc.heading(3, "Cost model" + (f": {b.label}" if b.label else ""))
     fit = recs[0].get("fit", "time per ray ~ C_0 + C_TS x steps + C_IT x tests")
-    doc.para(f"Havran and Purgathofer's cost model (2003), fitted per structure over the ray "
+    doc.para(_section_mark(b)
+             + f"Havran and Purgathofer's cost model (2003), fitted per structure over the ray "
              f"sets: {fit}; C_TS is the cost of a traversal step, C_IT of a triangle test, C_0 "
              f"what a ray costs whatever its path ({recs[0].get('time_basis', 'wall clock')}). "
              f"The residual is the root mean square of the relative errors of the fitted times. "
@@ -1046,9 +1235,10 @@ def section_cost_model(doc: Doc, b: Bench, out: Path, prefix: str) -> bool:
     if any(_dicts(r.get("points")) for r in recs):
         f = out / "figures" / f"{prefix}cost-model.png"
         fig_cost_model(b, f)
-        doc.figure(f, f"figures/{f.name}",
+        doc.figure(f, f"figures/{f.name}", _marked(
                    "Measured against predicted nanoseconds per ray, one point per structure "
-                   f"and ray set; on the dotted line the model is exact. Data: `{b.command}`.")
+                   f"and ray set; on the dotted line the model is exact. Data: `{b.command}`.",
+                   bench_indicative(b)))
     return True
 
 
@@ -1057,7 +1247,8 @@ def section_turntable(doc: Doc, b: Bench) -> bool:
     if not recs:
         return False
     doc.heading(3, "Batched renders" + (f": {b.label}" if b.label else ""))
-    doc.para("A turntable of the glass camel rendered as one batch (`jrt.batch.render_batch`: "
+    doc.para(_section_mark(b)
+             + "A turntable of the glass camel rendered as one batch (`jrt.batch.render_batch`: "
              "one `jax.vmap` of the renderer's level function over the cameras) and as a "
              "Python loop of single renders (`jrt.whitted`), with the library's default "
              "chunk and with the batch's chunk; the ratio is the batch's images/s over the "
@@ -1107,9 +1298,12 @@ def section_work_precision(doc: Doc, inputs: Inputs, out: Path) -> None:
                  "exact tree against sampled branches, Fresnel exact against Schlick); pass "
                  "their JSON to the report to draw the diagrams.")
         return
+    quick = {p["path"]: inputs.indicative[p["path"]] for p in points
+             if p["path"] in inputs.indicative}
     doc.para("Each point is a measured run: its run time against its error relative to the "
              "reference (PSNR and SSIM by scikit-image, higher is better; mean CIEDE2000 ΔE by "
-             "colour-science, lower is better).")
+             "colour-science, lower is better)." + "".join(
+                 f" {_mark(reason)[:-1]} (`{path.name}`)." for path, reason in quick.items()))
     studies = list(dict.fromkeys(p["study"] for p in points))
     for i, study in enumerate(studies, 1):
         pts = [p for p in points if p["study"] == study]
@@ -1126,10 +1320,12 @@ def section_work_precision(doc: Doc, inputs: Inputs, out: Path) -> None:
         metrics = [m for m in METRICS if any(p[m[0]] is not None for p in pts)]
         if metrics:
             f = out / "figures" / f"work-precision-{i}.png"
-            fig_work_precision(pts, metrics, f, study or "Error against run time", command)
-            doc.figure(f, f"figures/{f.name}",
+            note = "; ".join(dict.fromkeys(quick[p["path"]] for p in pts if p["path"] in quick))
+            fig_work_precision(pts, metrics, f, study or "Error against run time", command,
+                               note=note)
+            doc.figure(f, f"figures/{f.name}", _marked(
                        f"Error against run time{': ' + study if study else ''} (each point a "
-                       f"measured run). Data: {caption}.")
+                       f"measured run). Data: {caption}.", note))
 
 
 # --- Stability ------------------------------------------------------------------------------
@@ -1222,8 +1418,8 @@ def section_stability(doc: Doc, path: Path, data: dict, many: bool) -> None:
     doc.heading(2, "Numerical stability" + (f": `{path.name}`" if many else ""))
     command = stability_command(data, path)
     env = data.get("environment") or {}
-    doc.para(("A quick run (`--quick`, small sizes). " if data.get("quick") else
-              "The study's standard sizes (`--size standard`, a tenth to a quarter of the "
+    doc.para((_mark("a quick run (`--quick`, small sizes)") + " " if stability_indicative(data)
+              else "The study's standard sizes (`--size standard`, a tenth to a quarter of the "
               "full sweep's rays; case 5 at three scales and three shifts). "
               if data.get("size") == "standard" else "")
              + f"Every case runs over kernel x structure pairs against an oracle: "
@@ -1261,11 +1457,22 @@ def section_stability(doc: Doc, path: Path, data: dict, many: bool) -> None:
 # --- Reading --------------------------------------------------------------------------------
 
 
-def _ranking(b: Bench) -> list[tuple[str, float]]:
-    traces = b.traces
-    scores = [(n, _geomean(_median((traces.get((n, s)) or {}).get("mrays_per_s"))
-                           for s in b.sets)) for n in b.structures]
-    return sorted([(n, g) for n, g in scores if g], key=lambda x: -x[1])
+def _ranking(b: Bench) -> dict[str, tuple[float, tuple[float, float] | None]]:
+    """Per structure, fastest first: the geometric mean over the ray sets of its median
+    Mrays/s, and the geometric means of its per-set min and max (None where a set has no
+    spread): an interval that holds the geometric mean of any choice of one warm call per
+    set."""
+    out = {}
+    for n in b.structures:
+        recs = [b.traces[n, s] for s in b.sets if (n, s) in b.traces
+                and _median(b.traces[n, s].get("mrays_per_s"))]
+        if not recs:
+            continue
+        spreads = [rate_spread(r) for r in recs]
+        out[n] = (_geomean(_median(r.get("mrays_per_s")) for r in recs),
+                  None if None in spreads else (_geomean(lo for lo, _ in spreads),
+                                                _geomean(hi for _, hi in spreads)))
+    return dict(sorted(out.items(), key=lambda x: -x[1][0]))
 
 
 def _mean_counter(b: Bench, name: str, counter: str) -> float | None:
@@ -1274,47 +1481,105 @@ def _mean_counter(b: Bench, name: str, counter: str) -> float | None:
     return sum(values) / len(values) if values else None
 
 
+def _ordinal(k: int) -> str:
+    return f"{k}{'th' if 10 <= k % 100 < 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(k % 10, 'th')}"
+
+
+def _calls(b: Bench) -> int | None:
+    """Warm calls per structure and set (the parameters, else the shortest repeats list)."""
+    n = b.params.get("repeats")
+    return n if _count(n) else min((len(t["repeats"]) for t in b.of("trace")
+                                    if isinstance(t.get("repeats"), list)), default=None)
+
+
+def _ends(values: dict, higher: bool = True) -> tuple[list[str], list[str]]:
+    """The names that may be first and those that may be last, best median first."""
+    ranks = places(values, higher)
+    order = sorted(values, key=lambda n: -values[n][0] if higher else values[n][0])
+    return ([n for n in order if ranks[n][0] == 1],
+            [n for n in order if ranks[n][1] == len(order)])
+
+
+def _fastest(s: str, rated: dict, b: Bench) -> str:
+    """A ray set's fastest and slowest structures, or the ones tied within the spread."""
+    first, last = _ends(rated)
+    top, slow = first[0], last[-1]
+    ratio = b.traces[top, s].get("ratio_to_embree")
+    vs = (f"{num(ratio)}x Embree's {num(_median(b.embree.get(s, {}).get('mrays_per_s')))}"
+          if ratio is not None else "")
+    if len(first) == len(rated) > 1:
+        return (f"{s}: all {len(rated)} {TIED} ("
+                + ", ".join(f"{n} {num(v)}" for n, (v, _) in rated.items()) + " Mrays/s)")
+    if len(first) == 1:
+        text = f"{s}: **{top}** {num(rated[top][0])} Mrays/s" + (f" ({vs})" if vs else "")
+    else:
+        text = (f"{s}: {_join(f'{n} {num(rated[n][0])}' for n in first)} Mrays/s {TIED} for "
+                "the fastest" + (f" ({top} {vs})" if vs else ""))
+    if len(rated) == 1:
+        return text
+    if len(last) == 1:
+        return text + (f", slowest {slow} {num(rated[slow][0])} "
+                       f"({num(rated[top][0] / rated[slow][0])}x slower)")
+    return text + f", slowest {_join(last)} {TIED}"
+
+
 def reading_bench(b: Bench) -> tuple[list[str], str]:
-    """Bullets of what the numbers say, and the paragraph on Havran's kd-tree claim."""
-    traces, embree, sets = b.traces, b.embree, b.sets
+    """Bullets of what the numbers say, and the paragraph on Havran's kd-tree claim.
+
+    Orders are stated only where the spread of the repeats separates them: one structure is
+    ahead of another when the min..max of their warm calls (or builds) do not overlap, and
+    structures that overlap are called tied within the run's spread."""
+    traces, sets = b.traces, b.sets
     items = []
+    calls = _calls(b)
+    basis = (f"the min–max of their {calls} warm calls" if calls and calls > 1 else
+             "their warm calls' spread")
     fastest = []
     for s in sets:
-        rated = [(n, _median(traces[n, s].get("mrays_per_s")), traces[n, s])
-                 for n in b.structures if (n, s) in traces]
-        rated = [x for x in rated if x[1]]
-        if not rated:
-            continue
-        name, rate, rec = max(rated, key=lambda x: x[1])
-        slow = min(rated, key=lambda x: x[1])
-        ratio = rec.get("ratio_to_embree")
-        text = f"{s}: **{name}** {num(rate)} Mrays/s"
-        if ratio is not None:
-            ref = _median(embree.get(s, {}).get("mrays_per_s"))
-            text += f" ({num(ratio)}x Embree's {num(ref)})"
-        if slow[0] != name:
-            text += f", slowest {slow[0]} {num(slow[1])} ({num(rate / slow[1])}x slower)"
-        fastest.append(text)
+        rated = {n: (_median(traces[n, s].get("mrays_per_s")), rate_spread(traces[n, s]))
+                 for n in b.structures if (n, s) in traces}
+        rated = {n: v for n, v in rated.items() if v[0]}
+        if rated:
+            fastest.append(_fastest(s, rated, b))
     if fastest:
-        items.append("Fastest per ray set: " + "; ".join(fastest) + ".")
+        items.append(("Fastest per ray set (one warm call each: no spread, so no structure is "
+                      "ranked ahead of another): " if calls == 1 else
+                      f"Fastest per ray set (a structure is ranked ahead of another only where "
+                      f"{basis} do not overlap): ") + "; ".join(fastest) + ".")
     ranking = _ranking(b)
     if len(ranking) > 1:
-        items.append(f"Over the {_plural(len(sets), 'ray set')} (geometric mean of Mrays/s): "
-                     + ", ".join(f"{n} {num(g)}" for n, g in ranking) + ".")
+        ranks = places(ranking)
+        parts = []
+        for n, (g, _) in ranking.items():
+            tied = tied_with(n, ranking)
+            place = "–".join(dict.fromkeys(_ordinal(k) for k in ranks[n]))
+            parts.append(f"{n} {num(g)} ({place}" + (f", tied with {_join(tied)}" if tied
+                                                     else "") + ")")
+        items.append(f"Over the {_plural(len(sets), 'ray set')} (geometric mean of Mrays/s; "
+                     "places from the geometric means of each set's min and max, shared where "
+                     f"they overlap): " + ", ".join(parts) + ".")
     ratios = [(t.get("ratio_to_embree"), n, s) for (n, s), t in traces.items()
               if isinstance(t.get("ratio_to_embree"), int | float)]
     if ratios:
         best, worst = max(ratios), min(ratios)
-        items.append(f"Against Embree on the same rays: from {num(worst[0])}x ({worst[1]}, "
-                     f"{worst[2]}) to {num(best[0])}x ({best[1]}, {best[2]}).")
-    builds = {n: _median(r.get("seconds")) for n, r in b.builds.items()}
-    builds = {n: v for n, v in builds.items() if v}
+        items.append(f"Against Embree on the same rays (medians): from {num(worst[0])}x "
+                     f"({worst[1]}, {worst[2]}) to {num(best[0])}x ({best[1]}, {best[2]}).")
+    builds = {n: (_median(r.get("seconds")), build_spread(r)) for n, r in b.builds.items()}
+    builds = {n: v for n, v in builds.items() if v[0]}
     mem = {n: _mib(r) for n, r in b.builds.items() if _mib(r)}
     if builds:
-        quick, slow = min(builds, key=builds.get), max(builds, key=builds.get)
-        text = (f"Build: fastest {quick} ({num(builds[quick])} s), slowest {slow} "
-                f"({num(builds[slow])} s)")
-        if mem:
+        first, last = _ends(builds, higher=False)
+        if len(builds) == 1:
+            text = f"Build: {first[0]} ({num(builds[first[0]][0])} s)"
+        elif len(first) == len(builds):
+            text = f"Build: all {len(builds)} {TIED} of the builds"
+        else:
+            text = "Build: " + ", ".join(
+                f"{word} {n} ({num(builds[n][0])} s)" if len(group) == 1 else
+                f"{word} {_join(f'{m} ({num(builds[m][0])} s)' for m in group)} {TIED}"
+                for word, group, n in (("fastest", first, first[0]),
+                                       ("slowest", last, last[-1])))
+        if mem:  # bytes are exact: no spread to separate
             small, big = min(mem, key=mem.get), max(mem, key=mem.get)
             text += f"; memory from {num(mem[small])} MiB ({small}) to {num(mem[big])} MiB ({big})"
         items.append(text + ".")
@@ -1330,45 +1595,60 @@ def reading_bench(b: Bench) -> tuple[list[str], str]:
             items.append(f"Every structure returned brute force's hits bit for bit "
                          f"(0 mismatches in {total:,} checked rays).")
     scaling = b.of("scaling")
-    if scaling:
-        parts = [f"{r.get('structure', '?')} N^{r['build_exponent']:.2f}" for r in scaling
-                 if isinstance(r.get("build_exponent"), int | float)]
-        trace = [f"{r.get('structure', '?')} N^{r['trace_exponent']:.2f}" for r in scaling
-                 if isinstance(r.get("trace_exponent"), int | float)]
-        n = sorted({row["triangles"] for r in scaling for row in _dicts(r.get("rows"))
-                    if _count(row.get("triangles"))})
-        if parts and n:
-            items.append(f"Scaling over {n[0]:,}–{n[-1]:,} triangles: build time "
-                         + ", ".join(parts) + "; time for a fixed number of camera rays "
-                         + ", ".join(trace) + ".")
+    n = sorted({row["triangles"] for r in scaling for row in _dicts(r.get("rows"))
+                if _count(row.get("triangles"))})
+    if n:
+        fits = [(r.get("structure", "?"), *scaling_fits(r)) for r in scaling]
+        span = f"Scaling over {n[0]:,}–{n[-1]:,} triangles ({_plural(len(n), 'size')})"
+        if all(be is None and te is None for _, be, te, _ in fits):
+            items.append(f"{span}: exponents {_not_fitted(len(n))}.")
+        else:
+            def exps(i):
+                return ", ".join(f"{f[0]} N^{f[i]:.2f}" if f[i] is not None else
+                                 f"{f[0]} {_not_fitted(f[3])}" for f in fits)
+            items.append(f"{span}: build time {exps(1)}; time for a fixed number of camera "
+                         f"rays {exps(2)}.")
     return items, havran(b, ranking)
 
 
-def havran(b: Bench, ranking) -> str:
-    """Havran's thesis (2000) against the camel: the kd-tree's rank and, as the reason, the
-    measured steps and triangle tests per ray (and the cost model's C_TS, C_IT)."""
+def havran(b: Bench, ranking: dict) -> str:
+    """Havran's thesis (2000) against the camel: the kd-tree's place and, as the reason, the
+    measured steps and triangle tests per ray (and the cost model's C_TS, C_IT). The run
+    agrees only when the kd-tree's interval lies above every other structure's, disagrees
+    only when some structure's lies above the kd-tree's, and says neither otherwise."""
     lead = ("Havran's thesis (*Heuristic Ray Shooting Algorithms*, 2000) found the SAH "
             "kd-tree the most efficient scheme on CPUs. ")
-    names = [n for n, _ in ranking]
+    names = list(ranking)
     if "kdtree" not in names:
         return lead + "These results have no kd-tree trace to compare with."
-    rank = names.index("kdtree") + 1
-    kd_rate = dict(ranking)["kdtree"]
-    other = names[0] if rank > 1 else (names[1] if len(names) > 1 else None)
-    if other is None:
+    if len(names) == 1:
         return lead + "The kd-tree is the only structure traced here."
-    steps = {n: _mean_counter(b, n, "steps") for n in (other, "kdtree")}
-    tests = {n: _mean_counter(b, n, "tests") for n in (other, "kdtree")}
-    rate = dict(ranking)[other]
+    place = places(ranking)["kdtree"]
+    kd_rate = ranking["kdtree"][0]
+    ahead = [n for n in names if _ahead(ranking, n, "kdtree")]
+    tied = tied_with("kdtree", ranking)
     mesh = str(b.params.get("mesh") or "")
     subject = "The camel" if "camel" in mesh.lower() else f"This mesh (`{mesh or '?'}`)"
-    if rank == 1:
+    if place == (1, 1):
+        verdict, other = "agrees", next(n for n in names if n != "kdtree")
+        rate = ranking[other][0]
         text = (f"{subject} agrees: the kd-tree is the fastest here ({num(kd_rate)} Mrays/s, "
                 f"geometric mean over the ray sets, {num(kd_rate / rate)}x the next, {other}).")
+    elif ahead:
+        verdict, other = "disagrees", ahead[0]
+        rate = ranking[other][0]
+        text = (f"{subject} does not agree on this machine: the kd-tree ranks {_place(place)} of "
+                f"{len(names)}" + (f", {TIED} with {_join(tied)}" if tied else "")
+                + f" ({num(kd_rate)} Mrays/s, geometric mean over the ray sets, against "
+                f"{num(rate)} for the {other}: {num(rate / kd_rate)}x).")
     else:
-        text = (f"{subject} does not agree on this machine: the kd-tree ranks {rank} of "
-                f"{len(names)} ({num(kd_rate)} Mrays/s, geometric mean over the ray sets, "
-                f"against {num(rate)} for the {other}: {num(rate / kd_rate)}x).")
+        verdict, other = "", next(n for n in names if n != "kdtree")
+        text = (f"This run neither confirms nor contradicts it on "
+                f"{subject[0].lower() + subject[1:]}: the kd-tree ({num(kd_rate)} Mrays/s, "
+                f"geometric mean over the ray sets) is {TIED} with {_join(tied)} for the first "
+                "place (their warm calls' min–max overlap).")
+    steps = {n: _mean_counter(b, n, "steps") for n in (other, "kdtree")}
+    tests = {n: _mean_counter(b, n, "tests") for n in (other, "kdtree")}
     if None in steps.values() or None in tests.values():
         return lead + text + " No traversal counters were recorded to say why."
     s_kd, t_kd, s_o, t_o = steps["kdtree"], tests["kdtree"], steps[other], tests[other]
@@ -1381,13 +1661,15 @@ def havran(b: Bench, ranking) -> str:
                  f" / {num(_counter(cam[1], 'tests'))})")
     text += ". "
     costs = {r.get("structure"): r for r in b.of("cost_model")}
-    if rank == 1:
+    if verdict == "agrees":
         why = ("fewer triangle tests" if t_kd < t_o else "") + (
             " and " if t_kd < t_o and s_kd < s_o else "") + (
             "fewer steps" if s_kd < s_o else "")
         text += (f"The measured reason: {why or 'a cheaper step on this engine'}, which is "
                  "Havran's argument (tight leaves clipped to the node box, empty space cut "
                  "off early).")
+    elif not verdict:
+        text = text.rstrip()
     elif t_kd < t_o and s_kd > s_o:
         text += (f"The kd-tree does what Havran credits it with, fewer triangle tests "
                  f"({num(t_kd / t_o)}x the {other}'s), but takes {num(s_kd / s_o)}x the "
@@ -1555,6 +1837,21 @@ def section_renders(doc: Doc, images: list[tuple[Path, str]], out: Path) -> None
 # ============================================================================================
 
 
+def indicative_notice(inputs: Inputs) -> str:
+    """The report's opening caution when any input is a quick run: which, and what runs
+    give numbers that can rank the structures."""
+    timed = [b.path for b in inputs.bench] + [p for p, _ in inputs.stability]
+    head = ("Quick run: small ray sets, indicative only." if any(
+        p in inputs.indicative for p in timed) else f"Quick work–precision points: {INDICATIVE}.")
+    return (f"**{head}** " + "; ".join(f"`{p.name}`: {reason}" for p, reason in
+                                       inputs.indicative.items())
+            + ". The report's rankings are stated only where the spread of the repeats "
+            f"separates them and no power law is fitted through fewer than {MIN_FIT_SIZES} "
+            "sizes. Run `jrt study` for the full benchmark suite and the stability suite's "
+            "standard sizes, or `jrt study --full` for the published study (the stability "
+            "suite's full sweep and every work–precision point).")
+
+
 def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
     """Read the results, write ``out_dir/README.md``, ``index.html`` and the figures.
 
@@ -1579,6 +1876,8 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
     doc.para("Generated from " + _join(f"`{p}` ({kinds[k]})" for p, k in inputs.kinds)
              + f" by `{REPORT_COMMAND}`. Figures are PNG files beside this page; `index.html` "
              "is the same report with the figures embedded.")
+    if inputs.indicative:
+        doc.para(indicative_notice(inputs))
     if inputs.warnings:
         doc.bullets([f"Note: {w}" for w in inputs.warnings])
 
@@ -1636,10 +1935,11 @@ def build_parser(add_help: bool = True, prog: str = REPORT_COMMAND) -> argparse.
     """The report's options (``jrt report`` reuses them: ``add_help=False`` for parents)."""
     parser = argparse.ArgumentParser(
         prog=prog, add_help=add_help,
-        description="Turn JSON results of the benchmark suite (python -m benchmarks), the "
-                    "stability suite (python -m benchmarks.stability) and work-precision "
-                    "records into DIR/README.md with PNG figures and a self-contained "
-                    "DIR/index.html.")
+        description="Turn JSON results of the benchmark suite (jrt bench), the stability "
+                    "suite (python -m benchmarks.stability) and the work-precision study "
+                    "(python -m benchmarks.work_precision) into DIR/README.md with PNG "
+                    "figures and a self-contained DIR/index.html. 'jrt study' runs all of "
+                    "them and this report in one command.")
     parser.add_argument("results", nargs="+", metavar="RESULTS",
                         help="JSON files, recognised by their content")
     parser.add_argument("-o", "--output", required=True, metavar="DIR",
@@ -1659,9 +1959,10 @@ def run(args) -> dict:
     return result
 
 
-def main(argv=None) -> int:
-    """``python -m reports.report``: 0 on success; exit status 2 with the error otherwise."""
-    parser = build_parser()
+def main(argv=None, prog: str = REPORT_COMMAND) -> int:
+    """``python -m reports.report`` (``jrt report``): 0 on success; exit status 2 with the
+    error otherwise. ``prog`` names the command in usage and errors."""
+    parser = build_parser(prog=prog)
     args = parser.parse_args(argv)
     try:
         run(args)

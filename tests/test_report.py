@@ -313,9 +313,10 @@ def test_scaling_and_cost_model_tables(full_report, bench_results):
     exps = {r["structure"]: r for r in table(text, "Scaling", "build time ~ N^")}
     costs = {r["structure"]: r for r in table(text, "Cost model", "C_TS (ns)")}
     for rec in records:
-        if rec["kind"] == "scaling":
-            assert close(exps[rec["structure"]]["build time ~ N^"], rec["build_exponent"])
-            assert close(exps[rec["structure"]]["trace time ~ N^"], rec["trace_exponent"])
+        if rec["kind"] == "scaling":  # two sizes: the run's exponents are not shown
+            assert len(rec["rows"]) == 2 and isinstance(rec["build_exponent"], float)
+            assert exps[rec["structure"]]["build time ~ N^"] == "not fitted (2 sizes; 3 needed)"
+            assert exps[rec["structure"]]["trace time ~ N^"] == "not fitted (2 sizes; 3 needed)"
         if rec["kind"] == "cost_model":
             row = costs[rec["structure"]]
             for column, key in (("C_TS (ns)", "c_ts_ns"), ("C_IT (ns)", "c_it_ns"),
@@ -504,3 +505,205 @@ def test_turntable_table(full_report, bench_results):
                                      num(rec["loop_images_per_s"]),
                                      num(rec["loop_same_chunk_images_per_s"]),
                                      num(rec["ratio"])]
+
+
+# --- Quick runs: indicative marks, fits through 3 or more sizes, ranks within the spread ----
+
+SYN_SETS = {"camera": "closest", "shadow": "occluded"}
+
+
+def synthetic_bench(times: dict, builds: dict, sizes=(), quick: bool | None = True,
+                    rays: int = 4096, steps=None) -> dict:
+    """A benchmark result of plain dicts: ``times`` {structure: [seconds per warm call]}
+    (the same calls for every set, the shadow set twice as slow), ``builds`` {structure:
+    [seconds per build]}, scaling rows at ``sizes`` (triangles) with build times
+    1e-7 N^1.3 and trace times 0.01 N^0.2 times a fixed jitter."""
+    names = list(times)
+    calls = len(next(iter(times.values())))
+    params = {"mesh": "synthetic", "triangles": 1000, "structures": names,
+              "kernel": "watertight", "camera_rays": rays, "rays": rays,
+              "sets": [{"name": s, "query": q, "rays": rays, "distinct_rays": rays}
+                       for s, q in SYN_SETS.items()],
+              "builds": len(next(iter(builds.values()))), "repeats": calls}
+    if quick is not None:
+        params["quick"] = quick
+    records = []
+    for name in names:
+        b = builds[name]
+        records.append({"kind": "build", "structure": name, "mesh": "synthetic",
+                        "triangles": 1000, "repeats": b,
+                        "seconds": {"median": float(np.median(b)), "min": min(b),
+                                    "max": max(b), "spread": max(b) - min(b)},
+                        "bytes": 2**20})
+        for k, (set_name, query) in enumerate(SYN_SETS.items()):
+            t = [x * (k + 1) for x in times[name]]
+            rate = {"median": rays / float(np.median(t)) / 1e6, "min": rays / max(t) / 1e6,
+                    "max": rays / min(t) / 1e6}
+            counters = {c: {"mean": v, "p95": v, "max": int(v) + 1}
+                        for c, v in (steps or {}).get(name, {}).items()}
+            records.append({"kind": "trace", "structure": name, "set": set_name,
+                            "query": query, "rays": rays, "repeats": t,
+                            "seconds": {"median": float(np.median(t)), "min": min(t),
+                                        "max": max(t), "spread": max(t) - min(t)},
+                            "mrays_per_s": rate, **({"counters": counters} if counters
+                                                    else {})})
+    jitter = [1.0, 1.1, 0.93, 1.05]
+    for i, name in enumerate(names):
+        rows = []
+        for n, j in zip(sizes, jitter, strict=False):
+            build = 1e-7 * n**1.3 * j * (1 + 0.1 * i)
+            trace = 0.01 * n**0.2 / j
+            rows.append({"mesh": f"m{n}", "triangles": n, "build_repeats": [build],
+                         "build_seconds": {"median": build, "min": build, "max": build},
+                         "trace_repeats": [trace],
+                         "trace_seconds": {"median": trace, "min": trace, "max": trace},
+                         "mrays_per_s": {"median": rays / trace / 1e6}})
+        if rows:  # the exponents a run records from any two sizes: not what the report shows
+            records.append({"kind": "scaling", "structure": name, "set": "camera",
+                            "rays": rays, "rows": rows, "build_exponent": 9.99,
+                            "trace_exponent": 9.99})
+    return {"schema": "jrt-bench/1", "parameters": params, "records": records}
+
+
+def _write(tmp_path, name, data) -> Path:
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def _reading(text: str) -> str:
+    return text.split("## Reading", 1)[1].split("\n## ", 1)[0]
+
+
+#: Warm calls that overlap between every pair (min..max 10-14, 11-15, 12-16 ms).
+OVERLAPPING = {"bvh": [0.010, 0.014], "kdtree": [0.011, 0.015], "grid": [0.012, 0.016]}
+#: Warm calls whose min..max are apart: bvh fastest, then grid, then the kd-tree.
+SEPARATED = {"bvh": [0.010, 0.011], "kdtree": [0.020, 0.022], "grid": [0.014, 0.015]}
+STEPS_SYN = {"bvh": {"steps": 6.0, "tests": 1.0}, "kdtree": {"steps": 9.0, "tests": 0.5},
+             "grid": {"steps": 4.0, "tests": 3.0}}
+
+
+def test_quick_run_two_sizes_overlapping_repeats(tmp_path):
+    """A quick run says it is indicative at the top and under every figure, fits no
+    exponent through two sizes, and ranks nothing its repeats do not separate."""
+    data = synthetic_bench(OVERLAPPING, {n: [0.10, 0.13] for n in OVERLAPPING},
+                           sizes=(1000, 4000), steps=STEPS_SYN)
+    generate([_write(tmp_path, "quick", data)], tmp_path / "r")
+    text = (tmp_path / "r" / "README.md").read_text()
+    top = text.split("## Reading", 1)[0]
+    assert "Quick run: small ray sets, indicative only." in top
+    assert "4,096 rays a set" in top and "`jrt study`" in top
+    captions = [c for c in re.findall(r"^\*(.+)\*$", text, flags=re.M) if "Data:" in c]
+    assert len(captions) == 4  # rates, build, memory, scaling
+    assert all("Indicative only: quick run" in c for c in captions), captions
+    assert "**Indicative only**: quick run" in text.split("## The structures side by side")[1]
+    reading = _reading(text)
+    assert "Scaling over 1,000–4,000 triangles (2 sizes): exponents not fitted (2 sizes; 3 "\
+           "needed)." in reading
+    assert not re.search(r"N\^-?\d", text), re.findall(r".{40}N\^-?\d.{10}", text)
+    exps = {r["structure"]: r for r in table(text, "Scaling", "build time ~ N^")}
+    assert {r["build time ~ N^"] for r in exps.values()} == {"not fitted (2 sizes; 3 needed)"}
+    # Overlapping warm calls: no fastest, no slowest, no verdict on Havran.
+    assert "camera: all 3 tied within the run's spread" in reading
+    assert "shadow: all 3 tied within the run's spread" in reading
+    assert "**" not in reading.split("**Against the literature.**")[0].replace(
+        "**Numerical", "")
+    assert "Build: all 3 tied within the run's spread" in reading
+    assert "(1st–3rd, tied with kdtree and grid)" in reading
+    assert "This run neither confirms nor contradicts it on this mesh (`synthetic`)" in reading
+    assert "agrees:" not in reading and "does not agree" not in reading
+    assert "decide" not in reading and "The measured reason" not in reading
+
+
+def test_full_run_three_sizes_separated_repeats(tmp_path):
+    """A full run is not marked, fits its exponents through three sizes (numpy.polyfit of
+    the log-log points, independently) and ranks what its repeats separate."""
+    data = synthetic_bench(SEPARATED, {"bvh": [0.10, 0.11], "kdtree": [0.30, 0.32],
+                                       "grid": [0.05, 0.06]},
+                           sizes=(1000, 4000, 16000), quick=False, rays=2**18, steps=STEPS_SYN)
+    generate([_write(tmp_path, "full", data)], tmp_path / "r")
+    text = (tmp_path / "r" / "README.md").read_text()
+    assert "ndicative" not in text
+    reading = _reading(text)
+    exps = {r["structure"]: r for r in table(text, "Scaling", "build time ~ N^")}
+    for rec in (r for r in data["records"] if r["kind"] == "scaling"):
+        n = np.log([row["triangles"] for row in rec["rows"]])
+        k_build = np.polyfit(n, np.log([row["build_seconds"]["median"]
+                                        for row in rec["rows"]]), 1)[0]
+        k_trace = np.polyfit(n, np.log([row["trace_seconds"]["median"]
+                                        for row in rec["rows"]]), 1)[0]
+        assert abs(k_build - 1.3) > 0.005  # the jitter moves the fit off the generating law
+        row = exps[rec["structure"]]
+        assert close(row["build time ~ N^"], k_build) and close(row["trace time ~ N^"], k_trace)
+        assert f"{rec['structure']} N^{k_build:.2f}" in reading
+        assert f"{rec['structure']} N^{k_trace:.2f}" in reading
+    assert "9.99" not in text
+    assert "fitted exponents in the legend" in text
+    assert "camera: **bvh**" in reading and "slowest kdtree" in reading
+    geo = {n: np.exp(np.mean(np.log([2**18 / np.median(t) / k / 1e6 for k in (1, 2)])))
+           for n, t in SEPARATED.items()}
+    assert (f"bvh {num(geo['bvh'])} (1st), grid {num(geo['grid'])} (2nd), kdtree "
+            f"{num(geo['kdtree'])} (3rd)") in reading
+    assert (f"Build: fastest grid ({num(np.median([0.05, 0.06]))} s), slowest kdtree "
+            f"({num(np.median([0.30, 0.32]))} s)") in reading
+    assert "does not agree on this machine: the kd-tree ranks 3 of 3 (" in reading
+    assert "neither confirms" not in reading and "tied" not in reading
+
+
+def _bench(data) -> report.Bench:
+    return report.Bench(Path("synthetic.json"), data)
+
+
+def test_havran_verdict_follows_the_spread():
+    """The kd-tree apart above the others: agrees; apart below one: does not agree, its
+    place spanning the structures it ties with; overlapping the leader: cannot tell."""
+    builds = {n: [0.1, 0.2] for n in ("bvh", "kdtree", "grid")}
+    cases = {
+        "agrees: the kd-tree is the fastest here": {
+            "kdtree": [0.010, 0.011], "bvh": [0.014, 0.015], "grid": [0.020, 0.022]},
+        "does not agree on this machine: the kd-tree ranks 2–3 of 3, tied within the run's "
+        "spread with grid": {
+            "bvh": [0.010, 0.011], "kdtree": [0.014, 0.016], "grid": [0.015, 0.017]},
+        "neither confirms nor contradicts": {
+            "bvh": [0.010, 0.013], "kdtree": [0.012, 0.014], "grid": [0.020, 0.022]},
+    }
+    for expected, times in cases.items():
+        _, text = report.reading_bench(_bench(synthetic_bench(times, builds,
+                                                              steps=STEPS_SYN)))
+        assert expected in text, text
+    # One warm call each: no spread, so nothing is ranked.
+    one = {n: [t[0]] for n, t in SEPARATED.items()}
+    items, text = report.reading_bench(_bench(synthetic_bench(one, {n: [0.1] for n in one})))
+    assert "one warm call each: no spread" in items[0] and "**" not in items[0]
+    assert "neither confirms nor contradicts" in text
+
+
+def test_unrecorded_quick_flag_is_derived():
+    """A run that does not record ``quick``: small ray sets or fewer than three warm calls
+    make it indicative, large sets with enough calls do not."""
+    builds = {n: [0.1, 0.2, 0.3] for n in SEPARATED}
+    three = {n: [*t, t[0]] for n, t in SEPARATED.items()}
+    small = _bench(synthetic_bench(three, builds, quick=None, rays=4096))
+    assert report.bench_indicative(small).startswith("small run (small ray sets, 4,096 rays")
+    large = _bench(synthetic_bench(three, builds, quick=None, rays=2**18))
+    assert report.bench_indicative(large) == ""
+    few = _bench(synthetic_bench(SEPARATED, builds, quick=None, rays=2**18))
+    assert "2 warm calls per set" in report.bench_indicative(few)
+
+
+def test_places_are_the_extremes_of_every_choice_in_the_intervals():
+    """places(): the best and worst rank of each name over every choice of one value per
+    interval (endpoints suffice), by sorting the chosen values."""
+    import itertools
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        lo = rng.uniform(0, 10, 5)
+        values = {f"s{i}": (float(lo[i]), (float(lo[i]), float(lo[i] + rng.uniform(0, 3))))
+                  for i in range(5)}
+        seen = {n: set() for n in values}
+        for pick in itertools.product((0, 1), repeat=5):
+            chosen = {n: v[1][k] for (n, v), k in zip(values.items(), pick, strict=True)}
+            for rank, n in enumerate(sorted(chosen, key=chosen.get, reverse=True), 1):
+                seen[n].add(rank)
+        assert report.places(values) == {n: (min(r), max(r)) for n, r in seen.items()}
