@@ -1,4 +1,5 @@
-"""Shared fixtures: the camel (found through jrt's resolver) and its structures, built once."""
+"""Shared fixtures: the camel (the packaged mesh, through jrt's resolver) and its structures,
+built once."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 
 import accel
 import jrt  # (XLA flags before JAX starts)
-from jrt.data import camel_path
+from jrt.data import mesh_path
 from jrt.mesh import load_mesh
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
@@ -44,25 +45,15 @@ def pytest_collection_modifyitems(session, config, items):
 CAMEL_RAYS = 20_000
 
 
-def _mesh_or_skip(name: str):
-    """A study mesh through jrt's resolver; the test is skipped (with where it looked)
-    when the data is missing."""
-    try:
-        path = camel_path(name)
-    except FileNotFoundError as exc:
-        pytest.skip(str(exc))
-    return load_mesh(path)
-
-
 @pytest.fixture(scope="session")
 def camel():
-    return _mesh_or_skip("camel")
+    return load_mesh(mesh_path("camel"))
 
 
 @pytest.fixture(scope="session")
 def camel19k():
     """The 19k-triangle camel: the far-away, scaled and multi-mesh tests' smaller mesh."""
-    return _mesh_or_skip("camel-19k")
+    return load_mesh(mesh_path("camel-19k"))
 
 
 @pytest.fixture(scope="session")

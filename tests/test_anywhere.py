@@ -24,8 +24,6 @@ import accel
 import jrt
 from benchmarks.stability import aimed_rays
 
-pytestmark = pytest.mark.camel
-
 STRUCTURES = ("bvh", "kdtree", "octree", "bsp", "grid")
 #: (label, scale, shift): the camel is about 1.4 units across.
 PLACES = (("moved 1e3", 1.0, (1000.0, -700.0, 1300.0)),

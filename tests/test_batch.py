@@ -25,15 +25,10 @@ from skimage import io
 
 from jrt import batch, whitted
 from jrt.cli import main
-from jrt.data import has_camel
 from jrt.scene import builtin_toml, parse_scene
 
 W, H, DEPTH, SAMPLES = 24, 18, 3, 4
 ROOT = Path(__file__).resolve().parents[1]
-
-camel = pytest.mark.camel
-needs_camel = pytest.mark.skipif(not has_camel("camel-19k"),
-                                 reason="camel-19k.off not found (set JRT_DATA)")
 
 
 def glass_toml() -> str:
@@ -42,8 +37,6 @@ def glass_toml() -> str:
 
 @pytest.fixture(scope="module")
 def glass19k():
-    if not has_camel("camel-19k"):
-        pytest.skip("camel-19k.off not found (set JRT_DATA)")
     return whitted.prepare(parse_scene(glass_toml(), source="test glass-camel"),
                            samples=SAMPLES)
 
@@ -92,8 +85,6 @@ def assert_equal_to_loop(radiance, loop):
 # --------------------------------------------------------------------------- equal to the loop
 
 
-@camel
-@needs_camel
 def test_a_batch_of_cameras_equals_the_loop_of_single_renders(glass19k):
     cameras = batch.turntable(glass19k, 3, width=W, height=H)
     radiance, stats = batch.render_batch(glass19k, cameras=cameras, max_depth=DEPTH)
@@ -111,8 +102,6 @@ def test_a_batch_of_cameras_equals_the_loop_of_single_renders(glass19k):
     assert stats.items_per_call % len(jax.local_devices()) == 0
 
 
-@camel
-@needs_camel
 def test_a_material_sweep_equals_the_loop_of_single_renders(glass19k):
     scenes = batch.sweep_scenes(glass19k.scene, "glass.B=0.0:0.02:3")
     assert [s.material("glass").cauchy[1] for s in scenes] == pytest.approx([0, 0.01, 0.02])
@@ -127,8 +116,6 @@ def test_a_material_sweep_equals_the_loop_of_single_renders(glass19k):
     assert np.abs(radiance[2] - radiance[0]).max() > 1e-3  # B changes the picture
 
 
-@camel
-@needs_camel
 def test_a_batch_of_wavelength_bands_equals_the_loop_of_single_renders(glass19k):
     bands = [[380.0, 480.0], [480.0, 580.0], [580.0, 780.0]]
     radiance, stats = batch.render_batch(glass19k, bands=bands, width=W, height=H,
@@ -142,8 +129,6 @@ def test_a_batch_of_wavelength_bands_equals_the_loop_of_single_renders(glass19k)
     assert list(means.argmax(axis=1)) == [2, 1, 0]
 
 
-@camel
-@needs_camel
 def test_a_tiny_memory_budget_still_renders_the_same(glass19k):
     cameras = batch.turntable(glass19k, 3, width=W, height=H)
     radiance, stats = batch.render_batch(glass19k, cameras=cameras, max_depth=DEPTH,
@@ -216,8 +201,6 @@ def _sharded(tmp_path, devices: int):
     return proc, out
 
 
-@camel
-@needs_camel
 def test_the_batch_is_split_over_four_devices_and_equals_one_device(tmp_path):
     """Two processes, one with 4 XLA:CPU devices and one with 1, render the same 4 frames.
 
@@ -252,8 +235,6 @@ def test_the_batch_is_split_over_four_devices_and_equals_one_device(tmp_path):
 # --------------------------------------------------------------------------- bad input
 
 
-@camel
-@needs_camel
 def test_bad_batches_are_refused_with_what_is_allowed(glass19k):
     cams = batch.turntable(glass19k, 2, width=W, height=H)
     with pytest.raises(ValueError, match="needs cameras, scenes or bands"):
@@ -333,8 +314,6 @@ SMALL = ["--width", str(W), "--height", str(H), "--samples", str(SAMPLES),
          "--depth", str(DEPTH)]
 
 
-@camel
-@needs_camel
 def test_cli_turntable_writes_the_frames_and_a_gif(tmp_path, scene_file, capsys):
     import imageio.v3 as iio
 
@@ -353,8 +332,6 @@ def test_cli_turntable_writes_the_frames_and_a_gif(tmp_path, scene_file, capsys)
     assert "3 images 24x18" in printed.out and "turntable.gif" in printed.out
 
 
-@camel
-@needs_camel
 def test_cli_sweep_writes_a_contact_sheet(tmp_path, scene_file, capsys):
     out = tmp_path / "sheet.png"
     code = main(["render", "--scene", str(scene_file), "--sweep", "glass.B=0.0:0.02:3",

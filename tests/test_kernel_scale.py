@@ -22,8 +22,6 @@ import accel
 import jrt
 from jrt.kernels import moller_trumbore, watertight
 
-pytestmark = pytest.mark.camel
-
 SCALES = (1e-4, 1.0, 1e2, 1e3, 1e4, 1e5)
 #: Rays per scale: half aimed at the thinnest triangles' corners and edge midpoints, half at
 #: random vertices and edge midpoints of the whole mesh.

@@ -11,7 +11,7 @@ import trimesh
 
 import accel
 import jrt
-from jrt.mesh import SUFFIXES, Mesh, MeshError, load_mesh, mesh_from_arrays
+from jrt.mesh import SUFFIXES, Mesh, MeshError, MeshWarning, load_mesh, mesh_from_arrays
 
 # A right triangle in the z=0 plane, well away from the origin-centred degenerate ones below.
 TRIANGLE_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
@@ -220,11 +220,22 @@ def test_missing_file(tmp_path):
         load_mesh(path)
 
 
-def test_directory_is_not_a_mesh_file(tmp_path):
-    folder = tmp_path / "folder.off"
+@pytest.mark.parametrize("name", ["folder.off", "folder"])
+def test_directory_is_not_a_mesh_file(tmp_path, name):
+    folder = tmp_path / name
     folder.mkdir()
-    with pytest.raises(MeshError, match=r"no such mesh file"):
+    with pytest.raises(MeshError, match=rf"^{re.escape(str(folder))}: is a directory, not a "
+                       "mesh file$"):
         load_mesh(folder)
+
+
+@pytest.mark.parametrize("content", ["shopping list\nmilk\n", ""])
+def test_text_file_named_obj_is_not_a_mesh(tmp_path, content):
+    path = tmp_path / "notes.obj"
+    path.write_text(content)
+    with pytest.raises(MeshError, match=r"notes\.obj: not a mesh: no vertex \('v x y z'\) or "
+                       r"face \('f i j k'\) lines found"):
+        load_mesh(path)
 
 
 @pytest.mark.parametrize(
@@ -276,7 +287,7 @@ DEGEN_F = np.array([[0, 1, 2], [3, 4, 5], [1, 1, 2]], np.int64)
 @pytest.fixture
 def degenerate_mesh():
     with pytest.warns(
-        UserWarning,
+        MeshWarning,
         match=r"deg: 2 degenerate \(zero-area\) triangles kept but "
         r"never hit \(first: face 0\)",
     ):
@@ -333,7 +344,7 @@ def test_degenerate_face_loaded_from_file_is_kept_with_file_indices(tmp_path):
     path.write_text(
         "OFF\n6 3 0\n0 0 0\n1 0 0\n2 0 0\n10 10 0\n11 10 0\n10 11 0\n3 0 1 2\n3 3 4 5\n3 1 1 2\n"
     )
-    with pytest.warns(UserWarning, match=r"2 degenerate"):
+    with pytest.warns(MeshWarning, match=r"2 degenerate"):
         mesh = load_mesh(path)
     np.testing.assert_array_equal(mesh.faces, DEGEN_F)
     np.testing.assert_array_equal(mesh.degenerate, [0, 2])
@@ -347,7 +358,9 @@ def test_degenerate_face_loaded_from_file_is_kept_with_file_indices(tmp_path):
 def test_quad_off_file_is_fan_triangulated(tmp_path):
     path = tmp_path / "quad.off"
     path.write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
-    mesh = load_mesh(path)
+    with pytest.warns(MeshWarning, match=r"quad\.off: split 1 quad into 2 triangles \(1 face "
+                      r"in the file, 2 triangles: face indices count the triangles\)"):
+        mesh = load_mesh(path)
     assert mesh.faces.shape == (2, 3)
     assert mesh.degenerate.shape == (0,)
     # Every triangle lies in the square; together they cover its area (1) exactly once.
@@ -386,3 +399,77 @@ def test_bounds_and_diagonal_of_loaded_mesh(tmp_path):
     np.testing.assert_array_equal(lo, [0.5, -1.25, 2.0])
     np.testing.assert_array_equal(hi, [3.0, 1.75, 4.5])
     assert mesh.diagonal == pytest.approx(np.sqrt(2.5**2 + 3.0**2 + 2.5**2))
+
+
+def test_degenerate_warning_is_a_mesh_warning_and_a_user_warning():
+    assert issubclass(MeshWarning, UserWarning)
+    with pytest.warns(MeshWarning, match=r"deg: 1 degenerate \(zero-area\) triangle kept"):
+        mesh_from_arrays(DEGEN_V, DEGEN_F[1:], name="deg")
+
+
+# A quad (unit square, z=0) and a regular-ish pentagon (z=1) in one file, and a triangle.
+POLY_V = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
+          [0, 0, 1], [2, 0, 1], [3, 1, 1], [1, 2, 1], [-1, 1, 1], [5, 5, 5], [6, 5, 5],
+          [5, 6, 5]]
+POLY_FACES = [[0, 1, 2, 3], [4, 5, 6, 7, 8], [9, 10, 11]]
+
+
+def _shoelace_area(points) -> float:
+    """Area of a planar polygon in a plane z = const (the shoelace formula, float64)."""
+    x, y = np.asarray(points, np.float64)[:, 0], np.asarray(points, np.float64)[:, 1]
+    return 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+# trimesh's OFF reader fails on files mixing faces of five or more corners with others
+# (numpy 2 string arithmetic in triangulate_quads); its OBJ reader takes them.
+@pytest.mark.parametrize("suffix, faces, note", [
+    (".off", [POLY_FACES[0], POLY_FACES[2]], "split 1 quad into 2 triangles \\(2 faces in the "
+     "file, 3 triangles"),
+    (".obj", POLY_FACES, "split 1 quad and 1 polygon of 5 corners into 5 triangles \\(3 faces "
+     "in the file, 6 triangles"),
+])
+def test_polygons_are_split_with_a_note_that_counts_them(tmp_path, suffix, faces, note):
+    """Quads and pentagons become 2 and 3 triangles, the note counts them, and the
+    triangles cover each polygon's area (shoelace formula) once, with its orientation."""
+    path = tmp_path / f"poly{suffix}"
+    if suffix == ".off":
+        lines = [f"OFF\n{len(POLY_V)} {len(faces)} 0"]
+        lines += [" ".join(map(str, v)) for v in POLY_V]
+        lines += [" ".join(map(str, [len(f), *f])) for f in faces]
+    else:
+        lines = ["v " + " ".join(map(str, v)) for v in POLY_V]
+        lines += ["f " + " ".join(str(i + 1) for i in f) for f in faces]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.warns(MeshWarning, match=rf"poly{suffix}: {note}"):
+        mesh = load_mesh(path)
+    assert mesh.faces.shape == (sum(len(f) - 2 for f in faces), 3)
+    corners = mesh.vertices[mesh.faces].astype(np.float64)
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert (cross[:, 2] > 0).all()  # every polygon listed counter-clockwise seen from +z
+    for face in faces:
+        z = POLY_V[face[0]][2]
+        mine = corners[:, :, 2].max(axis=1) == z
+        assert 0.5 * cross[mine, 2].sum() == pytest.approx(
+            _shoelace_area([POLY_V[i] for i in face]), rel=1e-6)
+
+
+def test_ply_polygons_are_split_with_a_note(tmp_path):
+    path = tmp_path / "quad.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
+                    "property float y\nproperty float z\nelement face 1\n"
+                    "property list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    with pytest.warns(MeshWarning, match=r"quad\.ply: split its faces of more than three "
+                      r"corners into triangles \(1 face in the file, 2 triangles"):
+        mesh = load_mesh(path)
+    assert mesh.faces.shape == (2, 3)
+
+
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_triangle_files_load_without_a_note(tmp_path, suffix):
+    """No polygon note (nor any warning) for a file of triangles, in every format."""
+    path = tmp_path / f"tet{suffix}"
+    trimesh.Trimesh(TET_V, TET_F, process=False).export(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_mesh(path).faces.shape == (4, 3)

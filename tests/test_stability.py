@@ -16,14 +16,8 @@ import pytest
 import accel
 import jrt
 from benchmarks import stability
-from jrt.data import has_camel
 
 KERNELS = tuple(jrt.KERNELS)
-
-needs_camel_19k = pytest.mark.skipif(not has_camel("camel-19k"),
-                                     reason="camel-19k.off not found (set JRT_DATA)")
-needs_camel = pytest.mark.skipif(not has_camel("camel"), reason="camel.off not found "
-                                                                "(set JRT_DATA)")
 
 
 def _by(records, **match):
@@ -52,7 +46,6 @@ def test_oracle_agrees_with_jrt_brute_force_on_clean_rays():
 
 # --- Case 1 -----------------------------------------------------------------------------------
 
-@needs_camel_19k
 def test_case1_watertight_has_no_cracks_under_any_structure():
     pairs = [("watertight", s) for s in accel.NAMES] + [
         (k, "brute") for k in KERNELS if k != "watertight"]
@@ -92,7 +85,6 @@ def test_case2_grazing_rays():
 
 # --- Case 3 -----------------------------------------------------------------------------------
 
-@needs_camel
 def test_case3_slivers_and_degenerate_triangles():
     pairs = [(k, "brute") for k in KERNELS] + [("watertight", "bvh")]
     out = stability.case3(mesh="camel", per_triangle=2, incoherent_rays=0, libigl_sample=0,
@@ -118,7 +110,6 @@ def test_case3_slivers_and_degenerate_triangles():
 
 # --- Cases 4 and 5 ----------------------------------------------------------------------------
 
-@needs_camel_19k
 def test_case4_offsets_prevent_self_intersection():
     pairs = [("watertight", "bvh"), ("moller_trumbore", "brute")]
     out = stability.case4(mesh="camel-19k", rays=256, pairs=pairs)
@@ -131,7 +122,6 @@ def test_case4_offsets_prevent_self_intersection():
     assert _by(out["records"], kernel="moller_trumbore")[0]["self_hits"]["none"] > 0
 
 
-@needs_camel_19k
 def test_case5_pbrt_offset_has_no_self_hits_across_scale_and_offset():
     out = stability.case5(mesh="camel-19k", rays=128, scales=(1e-6, 1e-3, 1e3, 1e6),
                           shifts=(1.0, 1e3, 1e5, 1e7), pairs=[("watertight", "brute")],
@@ -150,7 +140,6 @@ def test_case5_pbrt_offset_has_no_self_hits_across_scale_and_offset():
     assert all(cell["nan"] == 0 for cell in rand["table"]["pbrt"].values())
 
 
-@needs_camel_19k
 def test_case5_builds_anywhere_record():
     """The sweep's per-structure record: the octree moved by 1e5 builds within 2x the memory
     at the origin, with no crack on the aimed rays and brute force's hits; at 1e7 (no bits
@@ -196,7 +185,6 @@ def test_case7_interface_optics():
     assert len(tir) == 12 and all(not c["tir_below"] and c["tir_above"] for c in tir)
 
 
-@needs_camel_19k
 def test_case7_glass_camel_traps_light_without_leaks():
     g = stability.glass_trapping("camel-19k", "watertight", "bvh", rays=8, cap=60)
     assert g["rays"] == 8
@@ -214,7 +202,6 @@ def test_case8_boundaries_reject_bad_inputs():
     assert len(mesh) == 4 and all("MeshError" in c["outcome"] for c in mesh)
 
 
-@needs_camel_19k
 def test_case8_closest_hit_rejects_nan_and_infinite_rays():
     """Every bad ray alone (NaN / inf origin or direction, zero direction) is a ValueError
     naming the ray, under brute force and the BVH; the suite records them as rejected."""

@@ -17,7 +17,6 @@ import pytest
 
 import jrt  # noqa: F401  (XLA flags before JAX starts)
 from benchmarks import work_precision as wp
-from jrt.data import camel_path
 from reports.report import classify, generate
 
 WIDTH, HEIGHT = 24, 18
@@ -40,10 +39,6 @@ def _tiny_plan(quick, settings):
 
 @pytest.fixture(scope="module")
 def result(tmp_path_factory, monkeypatch_module):
-    try:
-        camel_path("camel-19k")
-    except FileNotFoundError as exc:
-        pytest.skip(str(exc))
     out = tmp_path_factory.mktemp("wp") / "wp.json"
     monkeypatch_module.setattr(wp, "plan", _tiny_plan)
     assert wp.main(["--quick", "--width", str(WIDTH), "--height", str(HEIGHT),
