@@ -17,6 +17,9 @@ from jaxtyping import Array, Float
 
 from jrt.kernels import cross, dot
 
+#: :func:`frame_mesh`'s default margin: the bounding sphere, 5 % larger, fits the view.
+FRAME_MARGIN = 1.05
+
 
 @dataclasses.dataclass(frozen=True)
 class Camera:
@@ -97,16 +100,27 @@ def frame_mesh(
     vfov: float = 30.0,
     azimuth: float = 50.0,
     elevation: float = 20.0,
-    margin: float = 0.85,
+    margin: float = FRAME_MARGIN,
     up: tuple[float, float, float] = (0.0, 1.0, 0.0),
 ) -> Camera:
-    """A camera that frames the whole bounding box of ``vertices`` [V, 3].
+    """A camera that frames the whole bounding sphere of ``vertices`` [V, 3].
 
-    The eye sits on a sphere around the box centre, at ``azimuth`` degrees around the up
-    axis (0 looks along -z, from +z) and ``elevation`` degrees above the horizon, far enough
-    that the box's bounding sphere, times ``margin``, fits the narrower field of view.
-    The default is a 3/4 view from slightly above, for a y-up mesh.
+    The sphere has the bounding box's centre ``c`` and half its diagonal ``r``: it holds
+    every vertex whatever the direction it is seen from. The eye looks at ``c`` from
+    ``azimuth`` degrees around the up axis (0 looks along -z, from +z) and ``elevation``
+    degrees above the horizon, at the distance ``d`` where the sphere, its radius times
+    ``margin``, just fits the narrower of the two fields of view::
+
+        sin(min(vfov / 2, hfov / 2)) = margin * r / d,   tan(hfov / 2) = tan(vfov / 2) * w / h
+
+    (a sphere seen from ``d`` fills a cone of half-angle ``asin(r / d)``, and the image's
+    pyramid holds the cone of its narrower half-angle). With ``margin >= 1`` every vertex
+    projects inside the image, from every azimuth and elevation: every frame of a turntable
+    about ``c`` frames the whole mesh. A margin below 1 zooms in and may crop. The default
+    is a 3/4 view from slightly above, for a y-up mesh, with a 5 % margin.
     """
+    if not (math.isfinite(margin) and margin > 0):
+        raise ValueError(f"frame_mesh margin must be a positive number, got {margin}")
     v = np.asarray(vertices, np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre = (lo + hi) / 2
@@ -116,7 +130,7 @@ def frame_mesh(
     distance = radius * margin / math.sin(min(half_v, half_h))
     az, el = math.radians(azimuth), math.radians(elevation)
     offset = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
-    if up != (0.0, 1.0, 0.0):
+    if tuple(up) != (0.0, 1.0, 0.0):
         raise ValueError("frame_mesh places the eye for a y-up mesh; pass a Camera yourself")
     return Camera(
         eye=tuple(centre + distance * offset), target=tuple(centre), up=up, vfov=vfov,

@@ -13,12 +13,20 @@ import numpy as np
 
 from jrt.camera import camera_rays, frame_mesh
 
+#: The camera set's framing margin: tighter than a picture's (:data:`jrt.camera.FRAME_MARGIN`),
+#: so about 15 % of the camel's camera rays hit it rather than 10 %. It is a ray set for
+#: measuring traversals, and every published figure was measured on it.
+CAMERA_SET_MARGIN = 0.85
+
 
 def camera_set(vertices, count: int, aspect: float = 4 / 3, **frame) -> tuple[np.ndarray, ...]:
-    """About ``count`` camera rays (the image is ``width x height`` with the given aspect).
+    """About ``count`` camera rays (the image is ``width x height`` with the given aspect),
+    framed by :func:`jrt.camera.frame_mesh` with ``margin=CAMERA_SET_MARGIN`` unless
+    ``frame`` says otherwise.
 
     Returns float32 origins and unit directions [N, 3] with N = width * height >= count.
     """
+    frame.setdefault("margin", CAMERA_SET_MARGIN)
     height = max(1, math.ceil(math.sqrt(count / aspect)))
     width = max(1, math.ceil(count / height))
     camera = frame_mesh(vertices, width=width, height=height, **frame)

@@ -1,10 +1,12 @@
 """A first renderer: Lambert shading, one point lamp, hard shadows by any-hit rays.
 
 Camera rays start at the eye (reverse light path, seed Théorème 2.2). At a hit, the
-smooth normal interpolates libigl's per-vertex normals with the hit's barycentrics; a
-shadow ray goes from the hit point toward the lamp and stops at the first triangle it
-meets (``jrt.occluded``). The pixel is ``albedo * (ambient + (1 - ambient) * max(0, n·l))``
-when the lamp is visible, ``albedo * ambient`` in shadow. The background is a vertical
+shading normal interpolates the hit triangle's corner normals
+(:func:`jrt.normals.corner_normals`: smooth across edges below the crease angle, sharp
+across the others) with the hit's barycentrics ``(1-u-v, u, v)``; a shadow ray goes from
+the hit point toward the lamp and stops at the first triangle it meets (``jrt.occluded``).
+The pixel is ``albedo * (ambient + (1 - ambient) * max(0, n·l))`` when the lamp is
+visible, ``albedo * ambient`` in shadow. The background is a vertical
 sky gradient whose blue channel always exceeds its red one, while the (warm) camel's red
 exceeds its blue: a pixel belongs to the mesh iff red > blue, which the tests use.
 """
@@ -14,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import time
 
-import igl
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,6 +26,7 @@ from jrt.camera import Camera, camera_rays
 from jrt.hits import Hits
 from jrt.kernels import DEFAULT_KERNEL, cross, dot
 from jrt.mesh import Mesh
+from jrt.normals import DEFAULT_CREASE_ANGLE, corner_normals
 from jrt.trace import closest_hit, occluded
 
 ALBEDO = (0.86, 0.68, 0.46)  # sand
@@ -56,15 +58,6 @@ class RenderStats:
         )
 
 
-def vertex_normals(mesh: Mesh) -> np.ndarray:
-    """float32 [V, 3]: area-weighted per-vertex normals from libigl."""
-    normals = igl.per_vertex_normals(
-        mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64),
-        igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_AREA,
-    )
-    return np.nan_to_num(normals).astype(np.float32)
-
-
 def default_lamp(mesh: Mesh, camera: Camera) -> np.ndarray:
     """A lamp above the camera's left shoulder, well outside the mesh."""
     lo, hi = mesh.bounds
@@ -84,7 +77,7 @@ def _shade_points(hits: Hits, origins, directions, faces, vertices, normals, lam
     tri = jnp.maximum(hits.triangle, 0)
     corners = faces[tri]
     w = jnp.stack([1 - hits.u - hits.v, hits.u, hits.v], axis=-1)[..., None]
-    n = (normals[corners] * w).sum(axis=1)
+    n = (normals[tri] * w).sum(axis=1)  # corner normals [F, 3, 3] at the barycentrics
     p = vertices[corners]
     point = (p * w).sum(axis=1)
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
@@ -103,10 +96,12 @@ def _shade_points(hits: Hits, origins, directions, faces, vertices, normals, lam
 def _compose(hit, n, l, lit, ambient, height, width):
     lambert = jnp.maximum(dot(n, l), 0.0) * lit
     shade = ambient + (1 - ambient) * lambert
-    colour = jnp.asarray(ALBEDO)[None, :] * shade[:, None]
-    rows = (jnp.arange(height * width) // width) / max(height - 1, 1)
-    sky = (jnp.asarray(SKY_TOP)[None, :] * (1 - rows)[:, None]
-           + jnp.asarray(SKY_BOTTOM)[None, :] * rows[:, None])
+    # Explicit float32 and int32: the same values, and float32 under jax_enable_x64 too.
+    colour = jnp.asarray(ALBEDO, jnp.float32)[None, :] * shade[:, None]
+    rows = ((jnp.arange(height * width, dtype=jnp.int32) // width).astype(jnp.float32)
+            / max(height - 1, 1))
+    sky = (jnp.asarray(SKY_TOP, jnp.float32)[None, :] * (1 - rows)[:, None]
+           + jnp.asarray(SKY_BOTTOM, jnp.float32)[None, :] * rows[:, None])
     image = jnp.where(hit[:, None], colour, sky)
     return image.reshape(height, width, 3)
 
@@ -119,8 +114,12 @@ def render_lambert(
     ambient: float = 0.15,
     kernel: str = DEFAULT_KERNEL,
     shadows: bool = True,
+    crease_angle: float = DEFAULT_CREASE_ANGLE,
 ) -> tuple[np.ndarray, RenderStats]:
     """Render ``mesh`` (traced through ``structure``) seen by ``camera``.
+
+    ``crease_angle`` (degrees, [0, 180]): edges whose faces meet at a larger angle shade
+    sharp, the others smooth (:func:`jrt.normals.corner_normals`; 0 flat, 180 all smooth).
 
     Returns:
         image: float32 [height, width, 3] in [0, 1], linear.
@@ -132,7 +131,7 @@ def render_lambert(
     lamp = default_lamp(mesh, camera) if lamp is None else np.asarray(lamp, np.float32)
     if lamp.shape != (3,) or not np.all(np.isfinite(lamp)):
         raise ValueError(f"lamp must be 3 finite numbers, got {lamp!r}")
-    normals = jnp.asarray(vertex_normals(mesh))
+    normals = jnp.asarray(corner_normals(mesh.vertices, mesh.faces, crease_angle))
     faces = jnp.asarray(mesh.faces)
     vertices = jnp.asarray(mesh.vertices)
     start = time.perf_counter()

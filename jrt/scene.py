@@ -16,7 +16,8 @@ The schema (every table and field optional unless marked *required*; y is up)::
     vfov = 30.0                           # degrees, (0, 180)
     azimuth = 50.0                        # automatic framing only: degrees around +y
     elevation = 20.0                      # automatic framing only: degrees above horizon
-    margin = 0.85                         # automatic framing only: (0, 10]
+    margin = 1.05                         # automatic framing only: (0, 10]; the bounding
+                                          #   sphere, its radius times margin, fits the view
     width = 640                           # pixels, 1..16384
     height = 480
 
@@ -45,11 +46,13 @@ The schema (every table and field optional unless marked *required*; y is up)::
                                           #   name of colour.SDS_ILLUMINANTS
 
     [[objects]]                           # required: at least one
-    mesh = "camel"                        # required: "camel", "camel-19k" or a mesh file
+    mesh = "camel"                        # required: a shipped mesh's name or a mesh file
     material = "NAME"                     # required: a name under [materials]
     scale = 1.0                           # > 0
     rotate = [0.0, 0.0, 0.0]              # degrees about x, then y, then z (fixed axes)
     translate = [0.0, 0.0, 0.0]
+    crease_angle = 30.0                   # degrees, [0, 180]: sharper edges shade sharp
+                                          #   (jrt.normals; 0 flat, 180 all smooth)
 
     [floor]                               # absent: no floor
     material = "NAME"                     # required
@@ -76,10 +79,11 @@ from typing import Any, NoReturn
 import numpy as np
 
 import accel
-from jrt.camera import Camera, frame_mesh
+from jrt.camera import FRAME_MARGIN, Camera, frame_mesh
 from jrt.data import MESHES, camel_path
 from jrt.kernels import DEFAULT_KERNEL, KERNELS
-from jrt.mesh import SUFFIXES, Mesh, MeshError, load_mesh, mesh_from_arrays
+from jrt.mesh import SUFFIXES, Mesh, MeshError, load_mesh, mesh_from_arrays, mesh_suffix
+from jrt.normals import DEFAULT_CREASE_ANGLE, corner_normals
 
 Vec3 = tuple[float, float, float]
 
@@ -158,12 +162,14 @@ class Object:
     """A mesh placed in the scene: scaled, then rotated, then translated.
 
     Attributes:
-        mesh: ``"camel"``, ``"camel-19k"`` (found by :func:`jrt.camel_path`) or an absolute
-            path to a mesh file.
+        mesh: a shipped mesh's name (``jrt.data.MESHES``, found by :func:`jrt.mesh_path`)
+            or an absolute path to a mesh file (``.gz`` too).
         material: a material name.
         scale: uniform scale, > 0.
         rotate: degrees about the fixed x, y and z axes, applied in that order.
         translate: scene units.
+        crease_angle: degrees in [0, 180]; edges whose faces meet at a larger angle shade
+            sharp, the others smooth (:func:`jrt.normals.corner_normals`).
     """
 
     mesh: str
@@ -171,6 +177,7 @@ class Object:
     scale: float = 1.0
     rotate: Vec3 = (0.0, 0.0, 0.0)
     translate: Vec3 = (0.0, 0.0, 0.0)
+    crease_angle: float = DEFAULT_CREASE_ANGLE
 
     def rotation(self) -> np.ndarray:
         """float64 [3, 3]: R = Rz @ Ry @ Rx (x first, fixed axes, right-handed)."""
@@ -211,7 +218,7 @@ class CameraSpec:
     vfov: float = 30.0
     azimuth: float = 50.0
     elevation: float = 20.0
-    margin: float = 0.85
+    margin: float = FRAME_MARGIN
     width: int = 640
     height: int = 480
 
@@ -674,21 +681,22 @@ class _Reader:
         return Material(name, kind, glass=canonical, cauchy=(float(a), float(b)))
 
     def mesh(self, value: Any, path: str) -> str:
-        allowed = (f"{', '.join(MESHES)}, or a mesh file ({', '.join(SUFFIXES)}) relative "
-                   "to the scene file")
+        allowed = (f"{', '.join(MESHES)}, or a mesh file ({', '.join(SUFFIXES)}, each also "
+                   ".gz) relative to the scene file")
         if not isinstance(value, str) or not value:
             self.fail(path, "not a non-empty string", allowed, value)
         if value in MESHES:
             return value
         file = (self.base_dir / Path(value).expanduser()).resolve()
-        if file.suffix.lower() not in SUFFIXES:
+        if mesh_suffix(file).lower() not in SUFFIXES:
             self.fail(path, "unsupported mesh format", allowed, value)
         if not file.is_file():
             self.fail(path, f"no such file ({file})", allowed, value)
         return str(file)
 
     def object(self, body: Mapping, path: str, defined: tuple[str, ...]) -> Object:
-        self.keys(body, path, ("mesh", "material", "scale", "rotate", "translate"))
+        self.keys(body, path, ("mesh", "material", "scale", "rotate", "translate",
+                               "crease_angle"))
         mesh_allowed = f"{', '.join(MESHES)}, or a mesh file"
         mesh = self.mesh(self.get(body, "mesh", path, _REQUIRED, mesh_allowed),
                          f"{path}.mesh")
@@ -698,6 +706,8 @@ class _Reader:
             scale=self.number(body, "scale", path, 1.0, 0.0, lo_open=True),
             rotate=self.vec3(body, "rotate", path, [0.0] * 3),
             translate=self.vec3(body, "translate", path, [0.0] * 3),
+            crease_angle=self.number(body, "crease_angle", path, DEFAULT_CREASE_ANGLE,
+                                     0.0, 180.0),
         )
 
     def material_ref(self, body: Mapping, path: str, defined: tuple[str, ...]) -> str:
@@ -752,7 +762,7 @@ class _Reader:
             vfov=self.number(body, "vfov", p, 30.0, 0.0, 180.0, lo_open=True, hi_open=True),
             azimuth=self.number(body, "azimuth", p, 50.0, -360.0, 360.0),
             elevation=self.number(body, "elevation", p, 20.0, -90.0, 90.0, True, True),
-            margin=self.number(body, "margin", p, 0.85, 0.0, 10.0, lo_open=True),
+            margin=self.number(body, "margin", p, FRAME_MARGIN, 0.0, 10.0, lo_open=True),
             width=self.number(body, "width", p, 640, 1, MAX_PIXELS, integer=True),
             height=self.number(body, "height", p, 480, 1, MAX_PIXELS, integer=True),
         )
@@ -852,8 +862,9 @@ class SceneGeometry:
         mesh: the whole scene as one validated :class:`jrt.Mesh` (float32 vertices [V, 3],
             int32 faces [F, 3]); build the acceleration structure over it.
         material_of_face: int32 [F], index into ``materials`` of each face.
-        normals: float32 [V, 3], libigl's area-weighted vertex normals
-            (:func:`jrt.render.vertex_normals`); objects never share vertices.
+        normals: float32 [F, 3, 3], the shading normal of each face's corners
+            (:func:`jrt.normals.corner_normals` of each object with its ``crease_angle``;
+            the floor flat).
         materials: the scene's materials, in index order.
         lamps: the lamps, each with its position resolved.
         camera: the resolved :class:`jrt.Camera`.
@@ -912,9 +923,9 @@ def assemble(scene: Scene) -> SceneGeometry:
     Raises :class:`SceneError` for a mesh that fails :func:`jrt.load_mesh`'s validation,
     FileNotFoundError when the camel data cannot be found.
     """
-    from jrt.render import default_lamp, vertex_normals  # libigl, only when assembling
+    from jrt.render import default_lamp
 
-    vertices, faces, material, ranges = [], [], [], []
+    vertices, faces, material, ranges, normals = [], [], [], [], []
     loaded: dict[str, Mesh] = {}
     count = 0  # vertices so far
     for i, obj in enumerate(scene.objects):
@@ -926,6 +937,7 @@ def assemble(scene: Scene) -> SceneGeometry:
         mesh = loaded[obj.mesh]
         start = sum(len(f) for f in faces)
         vertices.append(obj.transform(mesh.vertices))
+        normals.append(corner_normals(vertices[-1], mesh.faces, obj.crease_angle))
         faces.append(mesh.faces.astype(np.int64) + count)
         material.append(np.full(len(mesh.faces), scene.material_index(obj.material)))
         ranges.append((start, start + len(mesh.faces)))
@@ -947,6 +959,7 @@ def assemble(scene: Scene) -> SceneGeometry:
         start = len(objects.faces)
         vertices.append(corners)
         faces.append(quad + count)
+        normals.append(corner_normals(corners, quad, 0.0))
         material.append(np.full(2, scene.material_index(scene.floor.material)))
         ranges.append((start, start + 2))
     whole = mesh_from_arrays(np.concatenate(vertices), np.concatenate(faces),
@@ -954,7 +967,7 @@ def assemble(scene: Scene) -> SceneGeometry:
     return SceneGeometry(
         mesh=whole,
         material_of_face=np.concatenate(material).astype(np.int32),
-        normals=vertex_normals(whole),
+        normals=np.concatenate(normals).astype(np.float32),
         materials=scene.materials,
         lamps=lamps,
         camera=camera,

@@ -26,7 +26,8 @@ spawns children:
 
 Entering and leaving are told apart by the sign of ``d · n_g``, ``n_g`` the geometric normal
 of the face's winding (outward for a closed, consistently oriented mesh such as the camel).
-Directions use the interpolated vertex normal (``n_s``); where it would send a child to the
+Directions use the shading normal ``n_s`` (the hit face's corner normals interpolated at its
+barycentrics, :func:`jrt.normals.corner_normals`); where it would send a child to the
 wrong side of the geometric surface (or faces away from the ray), that hit uses ``n_g``.
 
 **Channels.** A scene with dispersion (a Cauchy ``B != 0``) is rendered spectrally: every
@@ -129,7 +130,7 @@ class SceneArrays(NamedTuple):
 
     vertices: Float[Array, "v 3"]
     faces: Int[Array, "f 3"]
-    normals: Float[Array, "v 3"]  # libigl's area-weighted vertex normals
+    normals: Float[Array, "f 3 3"]  # corner normals (jrt.normals.corner_normals)
     material: Int[Array, " f"]  # material index of each face
     kind: Int[Array, " m"]  # KIND_CODES
     albedo: Float[Array, "m c"]  # diffuse reflectance over the channels
@@ -498,7 +499,7 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
     # Proposition 3.2; jrt.optics.orient).
     entering = dot(directions, ng_out) < 0
     ng = jnp.where(entering[:, None], ng_out, -ng_out)  # facing the ray
-    ns_out = _normalise((b * scene.normals[corners]).sum(axis=1))
+    ns_out = _normalise((b * scene.normals[tri]).sum(axis=1))  # corner normals at b
     ns = jnp.where(entering[:, None], ns_out, -ns_out)
     shading_ok = dot(directions, ns) < 0
     mat = scene.material[tri]
@@ -534,7 +535,7 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
             s_dir = seg / jnp.maximum(dist, 1e-30)[..., None]
             s_tmax = jnp.where(need, dist, 0.0)
             blocked = occluded(structure, start.reshape(-1, 3), s_dir.reshape(-1, 3),
-                               s_tmax.reshape(-1), kernel=static.kernel).reshape(n, n_lamps)
+                               tmax=s_tmax.reshape(-1), kernel=static.kernel).reshape(n, n_lamps)
             visible = need & ~blocked
             shadow_count = need.sum(dtype=jnp.int32)
             shade = ambient + (1 - ambient) * cos * visible  # [N, L]
@@ -589,7 +590,7 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
         tir = tir & is_glass
         if static.sampled:
             # One branch, reflected with probability R: weight unchanged (R / p = 1).
-            u = jax.random.uniform(key, (n,))
+            u = jax.random.uniform(key, (n,), jnp.float32)  # float32 under x64 too
             take_r = tir | (u < big_r[:, 0])
             child_d[0] = jnp.where((is_glass & ~take_r)[:, None], refr, child_d[0])
             child_w[0] = jnp.where(is_glass[:, None], weights, child_w[0])

@@ -13,7 +13,6 @@ import pytest
 
 import jrt  # noqa: F401  (XLA flags before JAX starts)
 from jrt.camera import Camera
-from jrt.data import has_camel
 from jrt.scene import (
     BUILTIN_SCENES,
     Features,
@@ -131,15 +130,13 @@ def test_unknown_builtin_and_missing_file(tmp_path):
         builtin_toml("glass")
 
 
-@pytest.mark.camel
-@pytest.mark.skipif(not has_camel("camel"), reason="camel.off not found (set JRT_DATA)")
 def test_assemble_builtins():
     for name in BUILTIN_SCENES:
         scene = load_scene(name)
         geo = assemble(scene)
         assert geo.vertices.dtype == np.float32 and geo.faces.dtype == np.int32
         assert geo.material_of_face.dtype == np.int32
-        assert geo.normals.shape == geo.vertices.shape and geo.normals.dtype == np.float32
+        assert geo.normals.shape == (len(geo.faces), 3, 3) and geo.normals.dtype == np.float32
         camel_faces, floor_faces = geo.object_faces
         assert camel_faces == (0, 69_092) and floor_faces == (69_092, 69_094)
         first, last = (geo.materials[i].name for i in geo.material_of_face[[0, -1]])
@@ -420,10 +417,10 @@ def test_floor_under_lowest_point(tmp_path, tetra):
     # It covers the objects' footprint (extent 3 around the centre).
     assert floor[..., 0].min() < lo[0] and floor[..., 0].max() > hi[0]
     assert floor[..., 2].min() < lo[2] and floor[..., 2].max() > hi[2]
-    # Both triangles face up, and so do their vertex normals.
+    # Both triangles face up, and so do their corner normals.
     e = np.cross(floor[:, 1] - floor[:, 0], floor[:, 2] - floor[:, 0])
     assert np.all(e[:, 1] > 0) and np.allclose(e[:, [0, 2]], 0)
-    np.testing.assert_allclose(geo.normals[4:], [[0, 1, 0]] * 4, atol=1e-6)
+    np.testing.assert_allclose(geo.normals[-2:].reshape(-1, 3), [[0, 1, 0]] * 6, atol=1e-6)
     assert geo.object_faces == ((0, 4), (4, 6))
 
 
