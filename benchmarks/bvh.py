@@ -153,7 +153,7 @@ def main(argv=None) -> dict:
         tmax = tmax.astype(np.float32)
         tj = jax.device_put(tmax)
         occ_run = lambda oj=oj, dj=dj, tj=tj: _ready(  # noqa: E731
-            jrt.occluded(bvh, oj, dj, tj, kernel=args.kernel, lanes=args.lanes))
+            jrt.occluded(bvh, oj, dj, tmax=tj, kernel=args.kernel, lanes=args.lanes))
         embree_occluded = lambda o=o, d=d, tm=tmax: embree.occluded(  # noqa: E731
             o, d, tm, threads=cores)
         occ_run()

@@ -64,8 +64,8 @@ def main(argv=None) -> dict:
                 differ |= ref[key] != got[key]
             tmax = np.where(np.isfinite(ref["t"]), ref["t"] * rng.choice([0.5, 1.5], len(o)),
                             10.0).astype(np.float32)
-            occ_ref = np.asarray(jrt.occluded(brute, o, d, tmax, kernel=kernel))
-            occ_got = np.asarray(jrt.occluded(bvh, o, d, tmax, kernel=kernel))
+            occ_ref = np.asarray(jrt.occluded(brute, o, d, tmax=tmax, kernel=kernel))
+            occ_got = np.asarray(jrt.occluded(bvh, o, d, tmax=tmax, kernel=kernel))
             row = {"set": name, "kernel": kernel, "rays": len(o),
                    "hits": int((ref["triangle"] >= 0).sum()),
                    "closest_hit_mismatches": int(differ.sum()),

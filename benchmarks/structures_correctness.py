@@ -47,14 +47,14 @@ def main(argv=None) -> dict:
             ref = as_numpy(jrt.closest_hit(bvh, o, d, kernel=kernel))
             tmax = np.where(np.isfinite(ref["t"]), ref["t"] * rng.choice([0.5, 1.5], len(o)),
                             10.0).astype(np.float32)
-            occ_ref = np.asarray(jrt.occluded(bvh, o, d, tmax, kernel=kernel))
+            occ_ref = np.asarray(jrt.occluded(bvh, o, d, tmax=tmax, kernel=kernel))
             for name, s in built.items():
                 start = time.perf_counter()
                 got = as_numpy(jrt.closest_hit(s, o, d, kernel=kernel))
                 differ = np.zeros(len(o), bool)
                 for key in ("triangle", "t", "u", "v"):
                     differ |= ref[key] != got[key]
-                occ = np.asarray(jrt.occluded(s, o, d, tmax, kernel=kernel))
+                occ = np.asarray(jrt.occluded(s, o, d, tmax=tmax, kernel=kernel))
                 row = {"set": set_name, "kernel": kernel, "structure": name, "rays": len(o),
                        "hits": int((ref["triangle"] >= 0).sum()),
                        "closest_hit_mismatches": int(differ.sum()),

@@ -4,32 +4,56 @@ Pure, jit-compiled JAX functions over arrays and pytrees. Acceleration structure
 built by the NumPy package :mod:`accel` and traversed here.
 """
 
+import importlib as _importlib
+
 from jrt import _xla  # (must run before JAX starts its backend)
+from jrt._xla import ImportOrderWarning
 from jrt.camera import Camera, camera_rays, frame_mesh
-from jrt.data import camel_path, data_dir
+from jrt.data import camel_path, data_dir, mesh_path
+from jrt.engine import Counters, StackOverflowError, TraversalError
 from jrt.hits import Hits
 from jrt.kernels import KERNELS, moller_trumbore, plane_barycentric, watertight
-from jrt.mesh import Mesh, MeshError, load_mesh, mesh_from_arrays
+from jrt.mesh import Mesh, MeshError, MeshWarning, load_mesh, mesh_from_arrays
+from jrt.normals import corner_normals
 from jrt.trace import closest_hit, occluded
 
 tune_malloc = _xla.tune_malloc
 
+#: Submodules reached as attributes (``jrt.optics.fresnel``) without an import of their own,
+#: loaded on first use (PEP 562): ``import jrt`` stays as light as it was.
+_SUBMODULES = frozenset({"batch", "normals", "optics", "render", "scene", "spectral",
+                         "whitted"})
+
+
+def __getattr__(name: str):
+    if name in _SUBMODULES:
+        return _importlib.import_module(f"jrt.{name}")
+    raise AttributeError(f"module 'jrt' has no attribute {name!r}")
+
+
 __all__ = [
     "KERNELS",
     "Camera",
+    "Counters",
     "Hits",
+    "ImportOrderWarning",
     "Mesh",
     "MeshError",
+    "MeshWarning",
     "camel_path",
     "camera_rays",
     "closest_hit",
+    "corner_normals",
     "data_dir",
     "frame_mesh",
     "load_mesh",
     "mesh_from_arrays",
+    "mesh_path",
     "moller_trumbore",
     "occluded",
     "plane_barycentric",
+    "StackOverflowError",
+    "TraversalError",
     "tune_malloc",
     "watertight",
 ]

@@ -52,6 +52,12 @@ It is not applied on import because it changes ``malloc`` for the whole process:
 called from threads started anew for every batch (embreex's outputs allocated in them)
 ran 10-25 % slower beside jrt with it (camel, 1M-ray batches); from threads that are kept,
 as the benchmarks' peer now does, it did not.
+
+**Import order.** XLA reads ``XLA_FLAGS`` once, when JAX starts its backends (at the first
+computation or ``jax.devices()``, not at ``import jax``). A program that starts them before
+importing jrt keeps XLA's defaults: one CPU device, so the traversal runs on one core. jrt
+cannot undo that, so on import it checks (without starting a backend itself) and warns
+once with an :class:`ImportOrderWarning` that says how to fix it.
 """
 
 from __future__ import annotations
@@ -62,6 +68,8 @@ import importlib.metadata
 import os
 import platform
 import re
+import sys
+import warnings
 
 
 def _jaxlib_before(major: int, minor: int) -> bool:
@@ -139,18 +147,84 @@ def tune_malloc(libc=None) -> bool:
 SMALL_WHILE_LOOP_BYTES = 2**40
 
 
+class ImportOrderWarning(UserWarning):
+    """jrt was imported after JAX had started its backends, so XLA runs without jrt's flags
+    (one CPU device instead of one per core, among others): import jrt first, or set
+    ``XLA_FLAGS`` before Python starts."""
+
+
+def _backends_started() -> bool:
+    """Whether JAX has started its backends already, found without starting them: never
+    when JAX is not imported yet; else JAX's own record (False where it cannot be read)."""
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # a JAX without this (private) function
+        return False
+
+
+def _started_cpu_devices() -> int | None:
+    """The CPU device count of JAX's already started CPU backend (None where unknown)."""
+    try:
+        from jax._src import xla_bridge
+        client = xla_bridge._backends.get("cpu")
+        return None if client is None else int(client.device_count())
+    except Exception:  # private API: a missing or changed record only loses a detail
+        return None
+
+
+def _import_order_message(missing: tuple[str, ...], flags: str) -> str:
+    devices = _started_cpu_devices()
+    wanted = _device_count()
+    found = (f"JAX's CPU backend has {devices} device(s) where jrt asks for {wanted} (one "
+             "per core; the traversal splits its rays over them)"
+             if devices is not None and devices != wanted else
+             f"XLA runs without {', '.join(flag.split('=')[0] for flag in missing)}")
+    return (f"jrt was imported after JAX started its backends, so XLA did not read the flags "
+            f"jrt sets: {found}. Import jrt before jax (or at least before JAX's first "
+            f"computation or jax.devices()), or set them yourself before Python starts: "
+            f"XLA_FLAGS='{flags}'")
+
+
+_WARNED = False
+
+
 def apply() -> None:
+    """Adds jrt's flags to ``XLA_FLAGS`` (a flag already named there is left as it is), and
+    warns (:class:`ImportOrderWarning`, once) when JAX's backends started before them."""
+    global _WARNED
     current = os.environ.get("XLA_FLAGS", "")
     flags = (*_FLAGS, f"--xla_force_host_platform_device_count={_device_count()}",
              "--xla_backend_extra_options="
              f"xla_cpu_small_while_loop_byte_threshold={SMALL_WHILE_LOOP_BYTES}")
     if _has_avx512():
         flags += ("--xla_cpu_prefer_vector_width=512",)
-    for flag in flags:
-        name = flag.split("=")[0]
-        if name not in current:
-            current = f"{current} {flag}".strip()
+    missing = tuple(flag for flag in flags if flag.split("=")[0] not in current)
+    for flag in missing:
+        current = f"{current} {flag}".strip()
     os.environ["XLA_FLAGS"] = current
+    if missing and not _WARNED and _backends_started():
+        _WARNED = True
+        warnings.warn(_import_order_message(missing, current), ImportOrderWarning,
+                      stacklevel=_caller_level())
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` of the first frame outside jrt and the import machinery: the
+    line that imported jrt, which the warning then names. (``warnings.warn`` skips the
+    import machinery's frames itself, so they are not counted.)"""
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame, level = sys._getframe(1), 1
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if not name.startswith("<frozen importlib"):
+            if not os.path.abspath(name).startswith(package):
+                return level
+            level += 1
+        frame = frame.f_back
+    return 1
 
 
 apply()

@@ -531,19 +531,22 @@ def _flat(name: str, kernel: str):
     return _FLAT[name, kernel]
 
 
-def _closest_hit(structure, origins, directions, kernel=DEFAULT_KERNEL, tmax=None, **options):
+def _closest_hit(structure, origins, directions, *, tmax=None, kernel=DEFAULT_KERNEL,
+                 **options):
     """:func:`jrt.closest_hit` as ``jrt.whitted`` calls it, batched by :func:`_flat_query`."""
     if options:  # counters, lanes...: not used by the renderer; the plain query
-        return _trace.closest_hit(structure, origins, directions, kernel, tmax, **options)
+        return _trace.closest_hit(structure, origins, directions, tmax=tmax, kernel=kernel,
+                                  **options)
     if tmax is None:
         tmax = jnp.full(origins.shape[:-1], jnp.inf, jnp.float32)
     return _flat("closest_hit", kernel)(structure, origins, directions, tmax)
 
 
-def _occluded(structure, origins, directions, tmax=None, kernel=DEFAULT_KERNEL, **options):
+def _occluded(structure, origins, directions, *, tmax=None, kernel=DEFAULT_KERNEL, **options):
     """:func:`jrt.occluded` as ``jrt.whitted`` calls it, batched by :func:`_flat_query`."""
     if options:
-        return _trace.occluded(structure, origins, directions, tmax, kernel, **options)
+        return _trace.occluded(structure, origins, directions, tmax=tmax, kernel=kernel,
+                               **options)
     if tmax is None:
         tmax = jnp.full(origins.shape[:-1], jnp.inf, jnp.float32)
     return _flat("occluded", kernel)(structure, origins, directions, tmax)

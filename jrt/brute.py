@@ -92,8 +92,14 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
             return best, None
 
         init = (jnp.full(o.shape[0], jnp.inf, o.dtype), jnp.full(o.shape[0], -1, jnp.int32))
-        (best_t, best_row), _ = lax.scan(body, init, (tri_chunks, bases))
-        return best_t, best_row
+
+        def scan(_):
+            (best_t, best_row), _ = lax.scan(body, init, (tri_chunks, bases))
+            return best_t, best_row
+
+        # A chunk whose rays all have tmax <= 0 (padding, jrt.engine.pad_rays) can hit
+        # nothing (a hit needs 0 < t < tmax): it skips the triangles.
+        return lax.cond(jnp.any(tm > 0), scan, lambda _: init, None)
 
     best_t, best_row = lax.map(per_ray_chunk, (o, d, tm))
     best_t, best_row = best_t.reshape(-1)[:n], best_row.reshape(-1)[:n]
@@ -116,8 +122,11 @@ def occluded(triangles, origins, directions, tmax, *, kernel: str,
     n = origins.shape[0]
     o, d, tm = _pad_rays(origins, directions, tmax, ray_chunk)
     tri_chunks, _ = _chunk_triangles(triangles, tri_chunk)
-    # Padding rays (tmax 0) count as occluded so that they never hold a chunk back.
-    live = jnp.arange(o.shape[0] * ray_chunk).reshape(o.shape[0], ray_chunk) < n
+    # Padding rays (tmax 0 here, or tmax <= 0 from jrt.engine.pad_rays) can hit nothing
+    # (a hit needs 0 < t < tmax): they count as occluded so that they never hold a chunk
+    # back, and are answered False.
+    index = jnp.arange(o.shape[0] * ray_chunk, dtype=jnp.int32)
+    live = (index.reshape(o.shape[0], ray_chunk) < n) & (tm > 0)
 
     def per_ray_chunk(args):
         o, d, tm, live = args

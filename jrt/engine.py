@@ -104,25 +104,83 @@ class StackOverflowError(TraversalError):
 #: Bits of the status word the engine returns with the hits.
 STATUS_STACK_OVERFLOW = 1
 STATUS_UNFINISHED = 2
-#: Some ray has a NaN or infinite origin or direction, a zero direction or a NaN tmax
-#: (:func:`ray_problems`): the public functions then name the first one and raise.
+#: Some ray has a NaN or infinite origin or direction, a direction whose length is out of
+#: :data:`DIRECTION_LENGTHS` (zero, say) or a NaN tmax (:func:`ray_problems`): the public
+#: functions then name the first one and raise.
 STATUS_BAD_RAYS = 4
+
+#: The lengths a ray's direction may have, [1e-6, 1e6]; ``t`` (and ``tmax``) are in units
+#: of that length, so a unit direction measures distance and ``d = p1 - p0`` with
+#: ``tmax = 1`` is the segment from p0 to p1. Every test is invariant under the direction's
+#: scale: the kernels are affine in it (a power-of-two scale gives the unit direction's t
+#: divided by it, bit for bit, and the same u, v), and the engine's margins are relative
+#: (boxes by the magnitudes of corners and origin, intervals and ties by t itself). The
+#: bounds keep ``t`` and the kernels' products inside float32's normal range for scenes
+#: from 1e-6 to 1e7 units (XLA:CPU flushes subnormals to zero: a direction of length 1e30
+#: would turn a hit at t = 1e-10 into t = 0, a miss); ``tests/test_api.py`` checks every
+#: structure with lengths 2^-19 to 2^19 against brute force with unit directions.
+DIRECTION_LENGTHS = (1e-6, 1e6)
+DIRECTION_LENGTHS_TEXT = "a length within [1e-06, 1e+06] (t is in units of that length)"
+
+
+def direction_length_squared(xp, d):
+    """|d|^2 [n], written out (the same expression in NumPy and in the engine)."""
+    return d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
 
 
 def ray_problems(xp, o, d, t):
     """The rays' validity rules, (name, bad [n], what is allowed) each, in NumPy or
     jax.numpy: the engine folds them into its status word (one pass over the rays it
-    reads anyway), and ``jrt.trace`` names the first bad ray from them."""
+    reads anyway), and ``jrt.trace`` and ``jrt.rays_io`` name the first bad ray from them.
+    A direction's length is checked only where it is finite (its square, in the rays'
+    float32)."""
+    finite_d = xp.isfinite(d).all(axis=1)
+    lo, hi = DIRECTION_LENGTHS
+    length2 = direction_length_squared(xp, d)
     return (("origins", ~xp.isfinite(o).all(axis=1), "finite"),
-            ("directions", ~xp.isfinite(d).all(axis=1), "finite"),
-            ("directions", ~(xp.abs(d) > 0).any(axis=1), "non-zero"),
+            ("directions", ~finite_d, "finite"),
+            ("directions", finite_d & ~((length2 >= lo * lo) & (length2 <= hi * hi)),
+             DIRECTION_LENGTHS_TEXT),
             ("tmax", xp.isnan(t), "a number (inf for no limit)"))
+
+
+def describe_bad_ray(o, d, t) -> str | None:
+    """The first rule of :func:`ray_problems` that some ray breaks, in words (NumPy
+    arrays; None if every ray is valid): the ray's index and value, the length of a
+    direction refused for its length, how many rays break the rule, what is allowed."""
+    o, d, t = (np.asarray(a, np.float32) for a in (o, d, t))
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        problems = ray_problems(np, o, d, t)
+    for name, bad, allowed in problems:
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            value = (o if name == "origins" else d if name == "directions" else t)[first]
+            length = ""
+            if allowed == DIRECTION_LENGTHS_TEXT:
+                length = f"length {np.linalg.norm(d[first].astype(np.float64)):.6g}; "
+            return (f"{name} of ray {first} is {np.asarray(value).tolist()} ({length}"
+                    f"{int(bad.sum())} such rays of {len(bad)}); allowed: {allowed}")
+    return None
+
+
+def pad_rays(origins, directions, tmax, size: int, xp=jnp):
+    """The rays followed by ``size - n`` padding rays, which can hit nothing: origin 0,
+    direction +z, tmax -inf (no ``0 < t < tmax``; the engine's queue and a BVH's entry
+    pass answer them without a step, brute force skips a chunk of them). Valid rays for
+    :func:`ray_problems`, so they never raise. ``xp``: jax.numpy or NumPy."""
+    pad = size - origins.shape[0]
+    if pad <= 0:
+        return origins, directions, tmax
+    return (xp.concatenate([origins, xp.zeros((pad, 3), origins.dtype)]),
+            xp.concatenate([directions, xp.tile(
+                xp.asarray([[0.0, 0.0, 1.0]], directions.dtype), (pad, 1))]),
+            xp.concatenate([tmax, xp.full((pad,), -np.inf, tmax.dtype)]))
 
 
 def _bad_rays_status(o, d, t):
     """:data:`STATUS_BAD_RAYS` if any ray breaks :func:`ray_problems`, else 0 (int32)."""
     bad = jnp.any(jnp.stack([b.any() for _, b, _ in ray_problems(jnp, o, d, t)]))
-    return jnp.where(bad, STATUS_BAD_RAYS, 0).astype(jnp.int32)
+    return jnp.where(bad, jnp.int32(STATUS_BAD_RAYS), jnp.int32(0))
 
 
 def iteration_budget(arrays, n: int, lanes: int) -> int:
@@ -365,14 +423,15 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         if frame is not None:  # rounded by 2^-24 of |corner - frame|: inside the margin
             lo, hi = lo - frame, hi - frame
         near, far = box_interval(every, tuple(lo), tuple(hi))
-        return jnp.where((near <= far) & (near <= every.tmax), 0, ENTRY_MISS)
+        return jnp.where((near <= far) & (near <= every.tmax), jnp.int32(0),
+                         jnp.int32(ENTRY_MISS))
 
     # One int32 output, the miss folded in: as two outputs (a flag and the start), XLA:CPU
     # computed the BVH root's box tests once for each (6 against 1.5 ms a 1M-ray call
     # more than the box test alone).
     first_of_ray = computed_once(rays[0, 6] > 0, can_hit, rays, always=True)
     hit_box = (first_of_ray != ENTRY_MISS).astype(jnp.int32)
-    rank = jnp.cumsum(hit_box) - 1
+    rank = jnp.cumsum(hit_box, dtype=jnp.int32) - 1
     queued = rank[-1] + 1
     queue = jnp.full(n, n, jnp.int32).at[jnp.where(hit_box > 0, rank, n)].set(
         jnp.arange(n, dtype=jnp.int32), mode="drop", unique_indices=True)
@@ -422,9 +481,9 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         new = dict(s, out=s["out"].at[target].set(s["best_row"], unique_indices=True))
         if counters:
             new["out_count"] = s["out_count"].at[target].set(s["count"], unique_indices=True)
-        rank = jnp.cumsum(done.astype(jnp.int32)) - 1
+        rank = jnp.cumsum(done, dtype=jnp.int32) - 1
         new["ray_id"] = jnp.where(done, dequeue(s["next_ray"] + rank), s["ray_id"])
-        new["next_ray"] = s["next_ray"] + jnp.sum(done.astype(jnp.int32))
+        new["next_ray"] = s["next_ray"] + jnp.sum(done, dtype=jnp.int32)
         new.update(_select(done, fresh(), {k: s[k] for k in fresh()}))
         new["renewed"] = done
         return new
@@ -464,7 +523,7 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         # One window of max_push entries per lane (a [L, width] entry is a window of one).
         entries = st.entry.reshape(lanes, max_push, width)
         new["stack"] = jax.vmap(lambda stack, entry, at: lax.dynamic_update_slice(
-            stack, entry, (at, 0)))(s["stack"], entries, jnp.minimum(sp, stack_size - 1))
+            stack, entry, (at, jnp.int32(0))))(s["stack"], entries, jnp.minimum(sp, stack_size - 1))
         # The top's slot is materialised first (computed_once): fused into the gather, the
         # whole push/pop logic was recomputed for every gathered int (28 against 10 µs an
         # iteration at 2048 lanes, jax.profiler).
@@ -514,9 +573,10 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     count = s["out_count"][:n] if counters else None
     # The rays' validity (ray_problems), from the packed rows: one place for one device
     # and for each device's share, in the program that reads the rays anyway.
-    status = (jnp.where(s["overflow"], STATUS_STACK_OVERFLOW, 0)
-              | jnp.where(jnp.any(s["ray_id"] < n), STATUS_UNFINISHED, 0)
-              | _bad_rays_status(rays[:, 0:3], rays[:, 3:6], rays[:, 6])).astype(jnp.int32)
+    zero = jnp.int32(0)
+    status = (jnp.where(s["overflow"], jnp.int32(STATUS_STACK_OVERFLOW), zero)
+              | jnp.where(jnp.any(s["ray_id"] < n), jnp.int32(STATUS_UNFINISHED), zero)
+              | _bad_rays_status(rays[:, 0:3], rays[:, 3:6], rays[:, 6]))
     return hits, count, status
 
 
@@ -543,13 +603,8 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
         return run(arrays, _pack_rays(origins, directions, tmax))
     k = len(devices)
     per = -(-n // k)
-    pad = per * k - n
-    if pad:
-        # Padding rays have tmax -inf: they test nothing and are cut off below.
-        origins = jnp.concatenate([origins, jnp.zeros((pad, 3), origins.dtype)])
-        directions = jnp.concatenate(
-            [directions, jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], directions.dtype), (pad, 1))])
-        tmax = jnp.concatenate([tmax, jnp.full((pad,), -jnp.inf, tmax.dtype)])
+    # Padding rays test nothing and are cut off below.
+    origins, directions, tmax = pad_rays(origins, directions, tmax, per * k)
     mesh = Mesh(np.asarray(devices), ("rays",))
 
     # Ray i goes to device i mod k (interleaved, not in blocks): neighbouring rays cost
@@ -585,9 +640,9 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
 
     hits = jax.tree.map(merge, hits)
     count = None if count is None else merge(count)
-    status = sum(jnp.where(jnp.any(status & bit), bit, 0)
+    status = sum(jnp.where(jnp.any(status & bit), jnp.int32(bit), jnp.int32(0))
                  for bit in (STATUS_STACK_OVERFLOW, STATUS_UNFINISHED, STATUS_BAD_RAYS))
-    return hits, count, status.astype(jnp.int32)
+    return hits, count, status
 
 
 def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel: str,

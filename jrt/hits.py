@@ -16,7 +16,8 @@ class Hits(NamedTuple):
     """Closest hits of a batch of rays.
 
     Attributes:
-        t: float32 [N], distance along the unit direction; ``+inf`` for a miss.
+        t: float32 [N], the hit point is ``origin + t * direction``: a distance for a unit
+            direction, in units of the direction's length otherwise; ``+inf`` for a miss.
         triangle: int32 [N], index into the mesh's faces; ``-1`` for a miss.
         u, v: float32 [N], barycentrics: the point is ``(1-u-v) v0 + u v1 + v v2``; 0 for a miss.
     """
@@ -119,7 +120,8 @@ def winner_hits(fn, rays, triangles, triangle_ids, rows) -> Hits:
         return jax.tree.map(lambda a, b: lax.dynamic_update_slice_in_dim(a, b, start, 0),
                             out, hits)
 
-    return lax.fori_loop(0, -(-n // WINNER_CHUNK), body, _misses(n))
+    # int32 bounds, so that the chunk starts stay int32 under jax_enable_x64.
+    return lax.fori_loop(jnp.int32(0), jnp.int32(-(-n // WINNER_CHUNK)), body, _misses(n))
 
 
 def _misses(n: int) -> Hits:

@@ -203,13 +203,15 @@ def watertight(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
     """
     dtype = direction.dtype
     abs_d = jnp.abs(direction)
+    # Axis indices as int32 (explicit, so that they stay so under jax_enable_x64).
+    zero, one, two = jnp.int32(0), jnp.int32(1), jnp.int32(2)
     kz = jnp.where(
         (abs_d[..., 0] >= abs_d[..., 1]) & (abs_d[..., 0] >= abs_d[..., 2]),
-        0,
-        jnp.where(abs_d[..., 1] >= abs_d[..., 2], 1, 2),
+        zero,
+        jnp.where(abs_d[..., 1] >= abs_d[..., 2], one, two),
     )
-    kx = jnp.where(kz == 2, 0, kz + 1)
-    ky = jnp.where(kx == 2, 0, kx + 1)
+    kx = jnp.where(kz == two, zero, kz + one)
+    ky = jnp.where(kx == two, zero, kx + one)
     dx, dy, dz = _permute(direction, kx, ky, kz)
     sx = -dx / dz
     sy = -dy / dz

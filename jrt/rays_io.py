@@ -1,7 +1,10 @@
 """Ray and hit files for ``jrt trace``: NumPy ``.npz`` archives, validated on the way in.
 
-Rays: ``origins`` and ``directions``, float [N, 3] (stored as float32), directions of unit
-length (within 1e-3); optional ``tmax`` [N], positive (``inf`` for no limit).
+Rays: ``origins`` and ``directions``, float [N, 3] (stored as float32); optional ``tmax``
+[N], positive (``inf`` for no limit). Directions follow the library's one rule
+(:data:`jrt.engine.DIRECTION_LENGTHS`, as ``jrt.closest_hit``): any length within
+[1e-6, 1e6], with ``t`` and ``tmax`` in units of that length (a distance for unit
+directions).
 Hits: ``t`` (``inf`` for a miss), ``triangle`` (``-1`` for a miss), ``u``, ``v``; with
 ``--any-hit``, ``occluded`` (bool) instead.
 """
@@ -13,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-UNIT_TOLERANCE = 1e-3
+from jrt import engine
 
 
 class RaysFileError(ValueError):
@@ -68,15 +71,11 @@ def load_rays(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
                 f"{path}: '{name}' has {int(bad.sum())} rows with NaN or infinite values "
                 f"(first: row {row} = {a[row].tolist()}); all must be finite"
             )
-    length = np.linalg.norm(directions.astype(np.float64), axis=1)
-    bad = np.abs(length - 1) > UNIT_TOLERANCE
-    if bad.any():
-        row = int(np.flatnonzero(bad)[0])
-        raise RaysFileError(
-            f"{path}: 'directions' must be unit vectors (length 1 within {UNIT_TOLERANCE}); "
-            f"{int(bad.sum())} are not, the first is row {row} with length {length[row]:.6g}. "
-            "Normalise them (d / |d|) before tracing"
-        )
+    # The library's rule for the rest (a direction's length), in its words.
+    problem = engine.describe_bad_ray(origins, directions,
+                                      np.zeros(len(origins), np.float32))
+    if problem is not None:
+        raise RaysFileError(f"{path}: {problem}")
     if tmax is not None and (np.isnan(tmax).any() or (tmax <= 0).any()):
         row = int(np.flatnonzero(np.isnan(tmax) | (tmax <= 0))[0])
         raise RaysFileError(

@@ -1,17 +1,37 @@
 """Public ray queries: any structure, any triangle kernel, one call site.
 
-    hits = jrt.closest_hit(structure, origins, directions, kernel="watertight", tmax=None)
-    mask = jrt.occluded(structure, origins, directions, tmax)
+    hits = jrt.closest_hit(structure, origins, directions, tmax=None, kernel="watertight")
+    mask = jrt.occluded(structure, origins, directions, tmax=None, kernel="watertight")
 
-``structure`` comes from ``accel.build(name, vertices, faces)``. Directions are expected to
-be unit vectors (seed, Proposition 2.1: a ray is a point and a unit vector), so that ``t``
-is a distance; the kernels themselves are affine and return ``t`` in units of the
-direction's length.
+``structure`` comes from ``accel.build(name, mesh)``. The options are keyword-only and
+come in the same order in both.
+
+**Directions** may have any length within :data:`jrt.engine.DIRECTION_LENGTHS`
+([1e-6, 1e6]); ``t`` and ``tmax`` are in units of the direction's length (the kernels are
+affine in it). A unit direction (seed, Proposition 2.1: a ray is a point and a unit
+vector) makes ``t`` a distance; ``d = p1 - p0`` with ``tmax=1`` is the segment from p0 to
+p1. The ``jrt trace`` command applies the same rule (``jrt.rays_io``).
+
+**Size buckets.** XLA compiles a program per array shape, 2.5-3 s for a traversal of the
+camel, so a caller whose ray count changes from call to call would compile on every call.
+Outside a caller's ``jit`` the rays are padded up to the next size of
+:func:`bucket_size` (1024, then 2^k and 3 x 2^(k-1): at most 1.5x the rays, two programs
+per doubling of the count) and the answers sliced back. A padding ray can hit nothing
+(:func:`jrt.engine.pad_rays`): the engine answers it before any lane takes it, brute force
+skips chunks of them, and the real rays' answers are those of an unpadded call, bit for
+bit. ``JRT_SIZE_BUCKETS=0`` turns the buckets off (for a measurement, or a caller that
+knows its sizes). Inside a caller's ``jit`` the shapes are the caller's, and the rays go
+through as they are.
+
+**Precision**: float32 inside, also under ``jax_enable_x64`` (the rays are converted to
+float32 on the way in; the hits are float32 and int32).
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
+import os
 
 import jax
 import jax.numpy as jnp
@@ -36,10 +56,71 @@ def traversal_of(structure: Structure) -> engine.Traversal:
     return importlib.import_module(f"jrt.{structure.kind}").traversal(structure)
 
 
-def _check_rays(origins, directions, tmax, values: bool = True):
-    """The rays as float32 arrays of consistent shapes (else a ValueError); their values
-    too with ``values`` (the engine's structures check them in their own pass, see
-    :func:`_raise_on_status`)."""
+#: The smallest size bucket (:func:`bucket_size`), a multiple of brute force's ray chunk
+#: and of every usual device count.
+MIN_BUCKET = 1024
+
+#: ``JRT_SIZE_BUCKETS=0`` turns the size buckets off (read at every call).
+BUCKETS_ENV = "JRT_SIZE_BUCKETS"
+
+
+def bucket_size(n: int) -> int:
+    """The ray count a call on ``n`` rays is compiled for: :data:`MIN_BUCKET` up to it,
+    then the smallest of 2^k and 3 x 2^(k-1) that holds ``n``.
+
+    Why these: a bucket trades padding work for compiles. Powers of two alone pad up to
+    2x; adding their midpoints 3 x 2^(k-1) caps it at 1.5x (1.2x on average over sizes
+    spread evenly on a log scale) for two programs per doubling of the count. Padding
+    costs the engine little (a padding ray never takes a lane: a pass over the rays and a
+    queue entry), so the cap matters mostly for brute force. Every bucket from 1024 up is
+    a multiple of 256 (brute force's ray chunk) and of 2, 3, 4, 6 and 8 devices, and the
+    usual image sizes (1024^2, 512^2) are buckets themselves.
+    """
+    if n <= MIN_BUCKET:
+        return MIN_BUCKET
+    power = 1 << (n - 1).bit_length()  # the smallest power of two >= n
+    return 3 * power // 4 if n <= 3 * power // 4 else power
+
+
+def _buckets_enabled() -> bool:
+    return os.environ.get(BUCKETS_ENV, "1").strip() != "0"
+
+
+def _padded(origins, directions, tmax, size: int):
+    """The rays padded to ``size`` (:func:`jrt.engine.pad_rays`). On the CPU, in NumPy:
+    the arrays are host memory already, and a jitted pad would be one more program to
+    compile for every ray count (0.1 s each on a busy 2-core host)."""
+    if jax.default_backend() == "cpu":
+        host = [np.asarray(a) for a in (origins, directions, tmax)]
+        return tuple(jnp.asarray(a) for a in engine.pad_rays(*host, size, xp=np))
+    return _padded_on_device(origins, directions, tmax, size=size)
+
+
+@functools.partial(jax.jit, static_argnames=("size",))
+def _padded_on_device(origins, directions, tmax, *, size):
+    return engine.pad_rays(origins, directions, tmax, size)
+
+
+def _first(tree, n: int):
+    """The first ``n`` rays' answers; on the CPU sliced in NumPy, as :func:`_padded`."""
+    if jax.default_backend() == "cpu":
+        return jax.tree.map(lambda a: jnp.asarray(np.asarray(a)[:n]), tree)
+    return _first_on_device(tree, n=n)
+
+
+@functools.partial(jax.jit, static_argnames=("n",))
+def _first_on_device(tree, *, n):
+    return jax.tree.map(lambda a: a[:n], tree)
+
+
+def _is_traced(*arrays) -> bool:
+    return any(isinstance(a, jax.core.Tracer) for a in arrays)
+
+
+def _check_rays(origins, directions, tmax):
+    """The rays as float32 arrays of consistent shapes (else a ValueError); ``tmax`` [N]
+    (``None``: inf). Their values are checked later, on the device (see
+    :func:`_raise_on_status` and :func:`_check_ray_values`)."""
     origins = jnp.asarray(origins, jnp.float32)
     directions = jnp.asarray(directions, jnp.float32)
     if origins.ndim != 2 or origins.shape[1] != 3:
@@ -51,32 +132,36 @@ def _check_rays(origins, directions, tmax, values: bool = True):
         )
     n = origins.shape[0]
     if tmax is None:
-        tmax = jnp.full((n,), jnp.inf, jnp.float32)
-    else:
-        tmax = jnp.broadcast_to(jnp.asarray(tmax, jnp.float32), (n,))
-    if values:
-        _check_ray_values(origins, directions, tmax)
+        tmax = np.float32(np.inf)
+    if not _is_traced(tmax) and np.ndim(tmax) == 0:
+        # A scalar: broadcast on the host (no program compiled per ray count).
+        tmax = np.full((n,), np.asarray(tmax, np.float32))
+    tmax = jnp.asarray(tmax, jnp.float32)
+    if tmax.shape != (n,):
+        try:
+            tmax = jnp.broadcast_to(tmax, (n,))
+        except ValueError:
+            raise ValueError(f"tmax must be a scalar or have shape [{n}] (one per ray), "
+                             f"got {tuple(tmax.shape)}") from None
     return origins, directions, tmax
 
 
-def _check_ray_values(origins, directions, tmax):
-    """NaN or infinite origins and directions, zero directions and NaN tmax are errors,
-    never silent misses. Checked where the values are known (outside a caller's jit);
-    inside one, such rays trace as misses (``t = inf``), which is documented."""
-    if any(isinstance(a, jax.core.Tracer) for a in (origins, directions, tmax)):
+def _check_ray_values(origins, directions, tmax, named=None):
+    """Bad rays (:func:`jrt.engine.ray_problems`: a NaN or infinite origin or direction, a
+    direction's length out of :data:`jrt.engine.DIRECTION_LENGTHS`, a NaN tmax) are
+    errors, never silent misses. Checked where the values are known (outside a caller's
+    jit); inside one, such rays trace as misses (``t = inf``), which is documented.
+    ``named``: the caller's rays (origins, directions, tmax) before padding, which the
+    message names (default: these)."""
+    if _is_traced(origins, directions, tmax):
         return
     # One fused pass on the device first (NumPy's took 53 ms of a 283 ms call on 1M rays);
     # the rays are copied to the host only to name a bad one.
     if not bool(_any_bad_ray(origins, directions, tmax)):
         return
-    o, d, t = np.asarray(origins), np.asarray(directions), np.asarray(tmax)
-    for name, bad, allowed in engine.ray_problems(np, o, d, t):
-        if bad.any():
-            first = int(np.flatnonzero(bad)[0])
-            value = (o if name == "origins" else d if name == "directions" else t)[first]
-            raise ValueError(
-                f"{name} of ray {first} is {np.asarray(value).tolist()} ({int(bad.sum())} "
-                f"such rays of {len(bad)}); allowed: {allowed}")
+    problem = engine.describe_bad_ray(*(named or (origins, directions, tmax)))
+    if problem is not None:
+        raise ValueError(problem)
 
 
 @jax.jit
@@ -121,8 +206,9 @@ def _raise_on_status(status, stack_size, rays):
         jax.debug.callback(_status_callback, status, stack_size=stack_size)
         return
     status = int(status)
-    if status & engine.STATUS_BAD_RAYS:
-        _check_ray_values(*rays)
+    problem = engine.describe_bad_ray(*rays) if status & engine.STATUS_BAD_RAYS else None
+    if problem is not None:
+        raise ValueError(problem)
     _status_callback(status, stack_size=stack_size)
 
 
@@ -139,26 +225,57 @@ def _status_callback(status, *, stack_size):
             "kind (a cycle, or arrays of another kind). Rebuild it with accel.build.")
 
 
-def _engine_query(structure, origins, directions, tmax, kernel, any_hit, counters, lanes,
-                  stack_size):
-    _check_options(lanes, stack_size)
-    # The arrays and layout were checked against the kind (_check_structure).
-    hits, count, status = engine.traverse(
-        traversal_of(structure), structure.arrays, origins, directions, tmax, kernel=kernel,
-        any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters)
-    _raise_on_status(status, stack_size, (origins, directions, tmax))
+def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, lanes,
+           stack_size):
+    """What :func:`closest_hit` and :func:`occluded` share: checks, size bucket, the
+    engine or brute force, the answers of the real rays. Returns (hits, counters or
+    None)."""
+    _check_structure(structure)
+    get_kernel(kernel)
+    is_brute = structure.kind == "brute"
+    if counters and is_brute:
+        raise ValueError("counters are available for the engine's structures, not brute "
+                         "force (which tests every triangle)")
+    if not is_brute:
+        _check_options(lanes, stack_size)
+    origins, directions, tmax = _check_rays(origins, directions, tmax)
+    n = origins.shape[0]
+    rays = (origins, directions, tmax)  # as the caller gave them, for the messages
+    traced = _is_traced(*rays)
+    size = bucket_size(n) if n and not traced and _buckets_enabled() else n
+    if size != n:
+        origins, directions, tmax = _padded(origins, directions, tmax, size)
+    count = None
+    if is_brute:
+        _check_ray_values(origins, directions, tmax, named=rays)  # padding rays are valid
+        if any_hit:
+            out = brute.occluded(structure["triangles"], origins, directions, tmax,
+                                 kernel=kernel)
+        else:
+            out = brute.closest_hit(structure["triangles"], structure["triangle_ids"],
+                                    origins, directions, tmax, kernel=kernel)
+    else:
+        # The arrays and layout were checked against the kind (_check_structure).
+        hits, count, status = engine.traverse(
+            traversal_of(structure), structure.arrays, origins, directions, tmax,
+            kernel=kernel, any_hit=any_hit, lanes=lanes, stack_size=stack_size,
+            counters=counters)
+        _raise_on_status(status, stack_size, rays)
+        out = hits.triangle >= 0 if any_hit else hits
+    if size != n:
+        out, count = _first((out, count), n)
     if count is not None:
         count = Counters(steps=count[:, 0], tests=count[:, 1], leaves=count[:, 2])
-    return hits, count
+    return out, count
 
 
 def closest_hit(
     structure: Structure,
     origins: Float[Array, "n 3"],
     directions: Float[Array, "n 3"],
-    kernel: str = DEFAULT_KERNEL,
-    tmax: Float[Array, " n"] | float | None = None,
     *,
+    tmax: Float[Array, " n"] | float | None = None,
+    kernel: str = DEFAULT_KERNEL,
     counters: bool = False,
     lanes: int | None = None,
     stack_size: int = engine.DEFAULT_STACK_SIZE,
@@ -167,9 +284,14 @@ def closest_hit(
 
     Args:
         structure: from ``accel.build``.
-        origins, directions: float32 [N, 3]; directions of unit length.
+        origins, directions: float [N, 3] (converted to float32). Directions of any
+            length within :data:`jrt.engine.DIRECTION_LENGTHS` ([1e-6, 1e6]); ``t`` and
+            ``tmax`` are in units of that length (a distance for unit directions). A NaN
+            or infinite origin or direction, a direction's length out of range (zero, say)
+            or a NaN tmax is a ``ValueError`` naming the first such ray (inside a caller's
+            ``jit``, where the values are unknown, such a ray is a miss).
+        tmax: float [N] or a scalar; ``None`` for no limit. Keyword-only, as every option.
         kernel: ``"watertight"`` (default), ``"moller_trumbore"`` or ``"plane_barycentric"``.
-        tmax: float32 [N] or a scalar; ``None`` for no limit.
         counters: also return :class:`jrt.Counters` (per-ray steps, triangle tests,
             leaves); a static option: without it the compiled traversal counts nothing.
         lanes, stack_size: the engine's persistent lanes per device (``None``: the
@@ -181,53 +303,32 @@ def closest_hit(
 
     Returns:
         :class:`jrt.Hits` (t inf and triangle -1 for a miss), and the counters if asked.
-        Ties: the smallest t, then the lowest face index.
+        Ties: the smallest t, then the lowest face index. A call compiles once per size
+        bucket (:func:`bucket_size`), not per ray count.
     """
-    _check_structure(structure)
-    get_kernel(kernel)
-    origins, directions, tmax = _check_rays(origins, directions, tmax,
-                                            values=structure.kind == "brute")
-    if structure.kind != "brute":
-        hits, count = _engine_query(structure, origins, directions, tmax, kernel, False,
-                                    counters, lanes, stack_size)
-        return (hits, count) if counters else hits
-    if counters:
-        raise ValueError("counters are available for the engine's structures, not brute "
-                         "force (which tests every triangle)")
-    return brute.closest_hit(
-        structure["triangles"], structure["triangle_ids"], origins, directions, tmax,
-        kernel=kernel,
-    )
+    hits, count = _query(structure, origins, directions, tmax, kernel=kernel, any_hit=False,
+                         counters=counters, lanes=lanes, stack_size=stack_size)
+    return (hits, count) if counters else hits
 
 
 def occluded(
     structure: Structure,
     origins: Float[Array, "n 3"],
     directions: Float[Array, "n 3"],
+    *,
     tmax: Float[Array, " n"] | float | None = None,
     kernel: str = DEFAULT_KERNEL,
-    *,
     counters: bool = False,
     lanes: int | None = None,
     stack_size: int = engine.DEFAULT_STACK_SIZE,
 ) -> Bool[Array, " n"] | tuple[Bool[Array, " n"], Counters]:
     """bool [N]: is there any hit with ``0 < t < tmax``? Stops at the first one found.
 
-    Options as :func:`closest_hit`.
+    Arguments, options, directions and size buckets as :func:`closest_hit`.
     """
-    _check_structure(structure)
-    get_kernel(kernel)
-    origins, directions, tmax = _check_rays(origins, directions, tmax,
-                                            values=structure.kind == "brute")
-    if structure.kind != "brute":
-        hits, count = _engine_query(structure, origins, directions, tmax, kernel, True,
-                                    counters, lanes, stack_size)
-        mask = hits.triangle >= 0
-        return (mask, count) if counters else mask
-    if counters:
-        raise ValueError("counters are available for the engine's structures, not brute "
-                         "force (which tests every triangle)")
-    return brute.occluded(structure["triangles"], origins, directions, tmax, kernel=kernel)
+    mask, count = _query(structure, origins, directions, tmax, kernel=kernel, any_hit=True,
+                         counters=counters, lanes=lanes, stack_size=stack_size)
+    return (mask, count) if counters else mask
 
 
 def as_numpy(hits: Hits) -> dict[str, np.ndarray]:

@@ -114,10 +114,10 @@ def test_camel_occluded_matches_brute(camel, camel_bvh, camel_brute, camel_rays,
     others = np.flatnonzero(~near)
     traced = np.union1d(np.flatnonzero(near), rng.choice(
         others, BRUTE_OCCLUDED - near.sum(), replace=False))
-    got = np.asarray(jrt.occluded(camel_bvh, origins, directions, tmax, kernel=kernel))
+    got = np.asarray(jrt.occluded(camel_bvh, origins, directions, tmax=tmax, kernel=kernel))
     want = np.where(near, False, t < tmax)
     want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
-                                           tmax[traced], kernel=kernel))
+                                           tmax=tmax[traced], kernel=kernel))
     assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
     bad = np.flatnonzero(got != want)
     assert bad.size == 0, (f"{bad.size} rays differ, e.g. {bad[:5]}: bvh {got[bad[:5]]} "
@@ -208,7 +208,7 @@ def test_the_root_step_is_taken_before_the_loop(camel, camel_bvh, camel_rays, br
     # The same rays, ending halfway to the box: nothing is traced, nothing occludes.
     inside = through & (near > 0)
     short = np.where(inside, near * 0.5, np.inf).astype(np.float32)
-    mask, occ = jrt.occluded(camel_bvh, origins[inside], directions[inside], short[inside],
+    mask, occ = jrt.occluded(camel_bvh, origins[inside], directions[inside], tmax=short[inside],
                              counters=True)
     assert not np.asarray(mask).any()
     assert (np.asarray(occ.steps) == 0).all()
@@ -242,7 +242,7 @@ def test_camel_counters(camel_bvh, camel_rays, brute_hits):
 CAP = 200  # triangles per soup, padded to
 N_RAYS = 256
 LEAF_BITS = 3  # leaves of up to 7 triangles
-PROPERTY = settings(max_examples=25, deadline=None, database=None)
+PROPERTY = settings(max_examples=15, deadline=None, database=None)
 
 
 def fixed_shape_bvh(structure: Structure) -> Structure:
@@ -530,8 +530,8 @@ def check_occluded_matches_brute(structure, brute, unpadded, origins, directions
     for kernel in KERNELS:
         t = np.asarray(jrt.closest_hit(brute, origins, directions, kernel=kernel).t)
         tmax = tmax_mix(rng, t, scale)
-        want = np.asarray(jrt.occluded(brute, origins, directions, tmax, kernel=kernel))
-        got = np.asarray(jrt.occluded(structure, origins, directions, tmax, kernel=kernel,
+        want = np.asarray(jrt.occluded(brute, origins, directions, tmax=tmax, kernel=kernel))
+        got = np.asarray(jrt.occluded(structure, origins, directions, tmax=tmax, kernel=kernel,
                                       lanes=32))
         if (got != want).any():
             xfail_if_sliver_bug(got != want, kernel, unpadded, origins, directions, tmax)
@@ -662,10 +662,8 @@ def test_bad_rays_are_named_by_every_structure(kind):
         o, d, t = good_o.copy(), good_d.copy(), np.full(5, np.inf, np.float32)
         {"o": o, "d": d, "t": t}[field][index] = value
         for query in (jrt.closest_hit, jrt.occluded):
-            args = (structure, o, d) + ((t,) if query is jrt.occluded else ())
-            kwargs = {} if query is jrt.occluded else {"tmax": t}
             with pytest.raises(ValueError, match=f"{name} of ray {index} is"):
-                query(*args, **kwargs)
+                query(structure, o, d, tmax=t)
     # The good rays alone answer.
     np.testing.assert_array_equal(np.asarray(jrt.closest_hit(structure, good_o, good_d).t), 1)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import zipfile
 
 import numpy as np
@@ -209,27 +210,32 @@ def test_float64_origin_too_large_for_float32(capsys, square, tmp_path):
     assert "'origins' has 1 rows with NaN or infinite values" in err
 
 
-@pytest.mark.parametrize("scale", [0.5, 1.002, 2.0, 0.0])
-def test_non_unit_direction(capsys, square, tmp_path, scale):
+@pytest.mark.parametrize("scale", [0.0, 9e-7, 1e-30, 1.1e6, 1e30])
+def test_direction_length_out_of_range(capsys, square, tmp_path, scale):
+    """The library's rule (jrt.engine.DIRECTION_LENGTHS), in the library's words."""
     origins, directions = _good(3)
-    directions[2] *= scale
+    directions[2] *= np.float32(scale)
     rays = _rays(tmp_path, origins=origins, directions=directions)
     err = _trace_error(capsys, square, rays, tmp_path)
-    assert "'directions' must be unit vectors (length 1 within 0.001)" in err
-    assert f"1 are not, the first is row 2 with length {scale:.6g}" in err
-    assert "Normalise them" in err
+    assert (f"directions of ray 2 is {directions[2].tolist()} "
+            f"(length {abs(float(directions[2, 2])):.6g}; 1 such rays of 3); allowed: a "
+            "length within [1e-06, 1e+06] (t is in units of that length)") in err
 
 
-@pytest.mark.parametrize("scale", [1.0009, 0.9991])
-def test_direction_within_unit_tolerance_is_accepted(capsys, square, tmp_path, scale):
-    origins, directions = _good()
-    directions[1] *= scale
-    rays = _rays(tmp_path, origins=origins, directions=directions)
+@pytest.mark.parametrize("scale", [2.0**-19, 1e-3, 0.5, 0.9991, 1.002, 3.0, 2.0**19])
+def test_non_unit_direction_measures_t_in_its_length(capsys, square, tmp_path, scale):
+    """As the library: any length within [1e-6, 1e6], t in units of it (1 / scale here,
+    a distance of 1), tmax too."""
+    origins, directions = _good(3)
+    directions[1:] *= np.float32(scale)
+    tmax = np.float32([np.inf, np.inf, 0.5 / scale])  # ray 2 stops halfway: a miss
+    rays = _rays(tmp_path, origins=origins, directions=directions, tmax=tmax)
     out = tmp_path / "hits.npz"
     _trace(capsys, square, rays, out)
     with np.load(out) as hits:
-        # t is in units of the direction's length: 1 / scale.
-        np.testing.assert_allclose(hits["t"], [1.0, 1.0 / scale], rtol=1e-6)
+        np.testing.assert_allclose(hits["t"], [1.0, 1.0 / np.float32(scale), np.inf],
+                                   rtol=1e-6)
+        np.testing.assert_array_equal(hits["triangle"] >= 0, [True, True, False])
 
 
 @pytest.mark.parametrize("shape", [(2, 1), (3,), (1,), ()])
@@ -418,3 +424,70 @@ def test_zero_rays(capsys, square, tmp_path):
     assert "0 rays, 0 hits" in stdout
     with np.load(out) as hits:
         assert hits["t"].shape == (0,) and hits["triangle"].shape == (0,)
+
+
+def test_trace_times_compile_and_trace_apart(capsys, square, case_rays, tmp_path):
+    """The printed rate is the file's rays over the timed call (compile timed before it,
+    on rays of the same shapes), never a rate with the compile included."""
+    stdout = _trace(capsys, square, case_rays, tmp_path / "hits.npz")
+    found = re.search(r"(\d+) rays, 5 hits in (\d+\.\d+) s \(([\d.e+-]+) Mrays/s; compiled "
+                      r"first, in (\d+\.\d+) s\)", stdout)
+    assert found, stdout
+    rays, seconds, rate = int(found.group(1)), float(found.group(2)), float(found.group(3))
+    assert rays == len(CASES) and rate > 0
+    if seconds >= 0.01:  # printed to the millisecond: the quotient is meaningful
+        assert rate == pytest.approx(rays / seconds / 1e6, rel=0.1)
+    assert "compile included" not in stdout
+
+
+# --------------------------------------------------------------------------------------
+# Meshes: what the command refuses, and what it notes
+# --------------------------------------------------------------------------------------
+
+
+def test_a_directory_given_as_mesh_is_named_a_directory(capsys, case_rays, tmp_path):
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    err = _trace_error(capsys, folder, case_rays, tmp_path)
+    assert f"{folder}: is a directory, not a mesh file" in err
+    assert "unsupported mesh format" not in err
+
+
+def test_a_text_file_named_obj_is_not_a_mesh(capsys, case_rays, tmp_path):
+    notes = tmp_path / "notes.obj"
+    notes.write_text("shopping list\nmilk\n")
+    err = _trace_error(capsys, notes, case_rays, tmp_path)
+    assert f"{notes}: not a mesh: no vertex ('v x y z') or face ('f i j k') lines" in err
+    assert "empty mesh" not in err
+
+
+def test_an_off_quad_is_split_with_a_note(capsys, case_rays, tmp_path):
+    """The square as one quad: a note says it was split, and the hits (triangle and t)
+    are the hand-worked ones of the square's two triangles."""
+    quad = tmp_path / "quad.off"
+    quad.write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    out = tmp_path / "hits.npz"
+    code = main(["trace", str(quad), str(case_rays), "-o", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert captured.err == (f"jrt trace: note: {quad}: split 1 quad into 2 triangles (1 face "
+                            "in the file, 2 triangles: face indices count the triangles)\n")
+    assert "quad.off: 4 vertices, 2 triangles" in captured.out
+    with np.load(out) as hits:
+        np.testing.assert_array_equal(hits["triangle"], _expected("triangle"))
+        np.testing.assert_allclose(hits["t"], _expected("t"), atol=1e-6)
+
+
+def test_a_degenerate_face_is_a_note_without_a_source_line(capsys, case_rays, tmp_path):
+    """The square with a third, zero-area face: one note line on stderr (no Python
+    warning category, no source line), and the face is never hit."""
+    path = tmp_path / "sliver.off"
+    path.write_text(SQUARE_OFF.replace("4 2 0", "4 3 0") + "3 0 1 1\n")
+    out = tmp_path / "hits.npz"
+    code = main(["trace", str(path), str(case_rays), "-o", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert captured.err == (f"jrt trace: note: {path}: 1 degenerate (zero-area) triangle "
+                            "kept but never hit (first: face 2)\n")
+    with np.load(out) as hits:
+        np.testing.assert_array_equal(hits["triangle"], _expected("triangle"))

@@ -78,7 +78,7 @@ def test_occluded_matches_embree(camel, camel_brute, embree_camel, kernel):
     """Any-hit with a finite tmax: rays from the incoherent set, cut at a random length."""
     origins, directions = incoherent_set(camel.vertices, 20_000, seed=2)
     tmax = np.random.default_rng(3).uniform(0.5, 3.0, len(origins)).astype(np.float32)
-    ours = np.asarray(jrt.occluded(camel_brute, origins, directions, tmax, kernel=kernel))
+    ours = np.asarray(jrt.occluded(camel_brute, origins, directions, tmax=tmax, kernel=kernel))
     ref = embree_camel.occluded(origins, directions, tmax)
     # A hit within 1e-4 of the scene size of tmax may fall either side in float32.
     closest = embree_camel.closest_hit(origins, directions)

@@ -446,10 +446,10 @@ def test_camel_occluded_matches_brute(camel, camel_grid, camel_brute, camel_rays
     others = np.flatnonzero(~near)
     traced = np.union1d(np.flatnonzero(near),
                         rng.choice(others, 2000 - near.sum(), replace=False))
-    got = np.asarray(jrt.occluded(camel_grid, origins, directions, tmax, kernel=kernel))
+    got = np.asarray(jrt.occluded(camel_grid, origins, directions, tmax=tmax, kernel=kernel))
     want = np.where(near, False, t < tmax)
     want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
-                                           tmax[traced], kernel=kernel))
+                                           tmax=tmax[traced], kernel=kernel))
     assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
     bad = np.flatnonzero(got != want)
     assert bad.size == 0, f"{bad.size} rays differ, e.g. {bad[:5]}"
@@ -569,7 +569,6 @@ def far_grids(far_scenes):
     return {name: accel.build("grid", v, f) for name, (v, f, _, _) in far_scenes.items()}
 
 
-@pytest.mark.camel
 @pytest.mark.parametrize("name", list(TRANSFORMS))
 def test_far_or_scaled_camel_builds_the_grid_of_the_origin(camel19k, far_scenes, far_grids,
                                                            name):
@@ -629,7 +628,6 @@ def far_padded(far_grids):
     return fixed_shape_scenes(far_grids)
 
 
-@pytest.mark.camel
 @pytest.mark.parametrize("kernel", FAR_KERNELS)
 @pytest.mark.parametrize("name", [*TRANSFORMS, "two camels"])
 def test_far_or_scaled_camel_hits_match_brute(far_scenes, far_padded, name, kernel):

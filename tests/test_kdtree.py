@@ -379,7 +379,7 @@ def traced(structure, brute, origins, directions, kernel):
         got.append(as_numpy(jrt.closest_hit(structure, ob, db, kernel=kernel, lanes=64)))
         want.append(as_numpy(jrt.closest_hit(brute, ob, db, kernel=kernel)))
         inf = np.full(N_RAYS, np.inf, np.float32)
-        occluded.append(np.asarray(jrt.occluded(structure, ob, db, inf, kernel=kernel,
+        occluded.append(np.asarray(jrt.occluded(structure, ob, db, tmax=inf, kernel=kernel,
                                                 lanes=32)))
     merge = lambda parts: {k: np.concatenate([p[k] for p in parts])[:n]  # noqa: E731
                            for k in parts[0]}
@@ -488,10 +488,10 @@ def check_camel_occluded(structure, camel, camel_brute, ray_sets, brute, kernel)
         near = np.isfinite(t) & (np.abs(t - tmax) <= 1e-5 * t)
     traced = np.union1d(np.flatnonzero(near),
                         rng.choice(np.flatnonzero(~near), 2_000, replace=False))
-    got = np.asarray(jrt.occluded(structure, origins, directions, tmax, kernel=kernel))
+    got = np.asarray(jrt.occluded(structure, origins, directions, tmax=tmax, kernel=kernel))
     want = np.where(near, False, t < tmax)
     want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
-                                           tmax[traced], kernel=kernel))
+                                           tmax=tmax[traced], kernel=kernel))
     assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
     bad = np.flatnonzero(got != want)
     assert bad.size == 0, f"{bad.size} rays differ, e.g. {bad[:5]}"

@@ -859,14 +859,14 @@ def test_tmax(name):
     dirs[-1] = (0, 0, -1)  # pointing away
     tmax = f32(1.5, 2.5, np.inf, 2.0, np.nextafter(np.float32(2), np.float32(3)), np.inf)
     expected = [False, True, True, False, True, False]
-    occ = np.asarray(jrt.occluded(structure, origins, dirs, tmax, kernel=name))
+    occ = np.asarray(jrt.occluded(structure, origins, dirs, tmax=tmax, kernel=name))
     np.testing.assert_array_equal(occ, expected)
     hits = jrt.trace.as_numpy(jrt.closest_hit(structure, origins, dirs, kernel=name, tmax=tmax))
     np.testing.assert_array_equal(hits["triangle"] >= 0, expected)
     np.testing.assert_array_equal(np.isfinite(hits["t"]), expected)
     # Scalar tmax and no tmax.
     np.testing.assert_array_equal(
-        np.asarray(jrt.occluded(structure, origins, dirs, 1.5, kernel=name)), [False] * n)
+        np.asarray(jrt.occluded(structure, origins, dirs, tmax=1.5, kernel=name)), [False] * n)
     np.testing.assert_array_equal(
-        np.asarray(jrt.occluded(structure, origins, dirs, None, kernel=name)),
+        np.asarray(jrt.occluded(structure, origins, dirs, tmax=None, kernel=name)),
         [True] * (n - 1) + [False])

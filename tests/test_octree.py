@@ -442,10 +442,10 @@ def test_camel_occluded_matches_brute(camel, camel_octree, camel_brute, camel_ra
     others = np.flatnonzero(~near)
     traced = np.union1d(np.flatnonzero(near), rng.choice(others, 2000 - near.sum(),
                                                          replace=False))
-    got = np.asarray(jrt.occluded(camel_octree, origins, directions, tmax, kernel=kernel))
+    got = np.asarray(jrt.occluded(camel_octree, origins, directions, tmax=tmax, kernel=kernel))
     want = np.where(near, False, t < tmax)
     want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
-                                           tmax[traced], kernel=kernel))
+                                           tmax=tmax[traced], kernel=kernel))
     assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
     bad = np.flatnonzero(got != want)
     assert bad.size == 0, f"{bad.size} rays differ, e.g. {bad[:5]}"
@@ -798,7 +798,6 @@ def far_camels(camel19k):
     return out
 
 
-@pytest.mark.camel
 def test_far_camels_build_the_same_references(far_camels):
     """Moved 1e5 away, the margins in world coordinates (2^-16 of 1.3e5 = 2.0) would
     swallow the camel (1 across) whole in every cell; in the local frame each build
@@ -844,7 +843,6 @@ def far_hits_match_brute(far_camels, name, kernel):
 FAR_KERNELS = ("moller_trumbore",)
 
 
-@pytest.mark.camel
 @pytest.mark.parametrize("kernel", FAR_KERNELS)
 def test_far_camels_closest_hit_matches_brute(far_camels, kernel):
     """FAR_RAYS rays per case (half from around the camel, half from inside its box aimed
@@ -853,7 +851,6 @@ def test_far_camels_closest_hit_matches_brute(far_camels, kernel):
         far_hits_match_brute(far_camels, name, kernel)
 
 
-@pytest.mark.camel
 @pytest.mark.parametrize("kernel", FAR_KERNELS)
 def test_two_camels_far_apart_match_brute(far_camels, kernel):
     """Two camels 1e3 apart, moved by (1000, -700, 1300): the scene is 1e3 across, its

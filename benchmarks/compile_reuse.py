@@ -1,0 +1,105 @@
+"""What a new ray count costs: the first call, then calls on counts never seen before.
+
+    python -m benchmarks.compile_reuse [--mesh camel-19k] [--structure bvh]
+                                       [--counts 1000,1001,1500,3000] [--json PATH]
+
+``jrt.closest_hit`` pads the rays to a size bucket (``jrt.trace.bucket_size``: 1024, then
+2^k and 3 x 2^(k-1)), so a count in a bucket already compiled reuses its program. Each
+mode runs in a fresh process (the compiled programs, and JAX's on-disk cache, are not
+shared): "buckets" as jrt runs by default, "no buckets" with ``JRT_SIZE_BUCKETS=0``, where
+every new count compiles. A call's time is compile (if any) and trace together, as a user
+sees it; the count of compiled traversal programs says which calls compiled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+from benchmarks.common import write_record
+
+MODES = {"no buckets": "0", "buckets": "1"}
+
+
+def _child(mesh_name: str, structure_name: str, counts: list[int]) -> dict:
+    """One process's calls (jrt imported here: the parent never starts JAX)."""
+    import jax
+    import numpy as np
+
+    import accel
+    import jrt
+    from jrt import engine
+    from jrt.raysets import incoherent_set
+
+    mesh = jrt.load_mesh(jrt.mesh_path(mesh_name))
+    structure = accel.build(structure_name, mesh)
+    origins, directions = incoherent_set(mesh.vertices, max(counts), seed=0)
+    program = jrt.brute.closest_hit if structure_name == "brute" else engine._traverse
+    calls = []
+    for n in counts:
+        start = time.perf_counter()
+        hits = jax.block_until_ready(jrt.closest_hit(structure, origins[:n], directions[:n]))
+        seconds = time.perf_counter() - start
+        calls.append({"rays": n, "seconds": seconds, "programs": program._cache_size(),
+                      "hits": int(np.sum(np.asarray(hits.triangle) >= 0))})
+    return {"mesh": mesh.summary(), "structure": structure_name, "calls": calls}
+
+
+def _run_mode(mode: str, args) -> dict:
+    env = dict(os.environ, JRT_SIZE_BUCKETS=MODES[mode])
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # measure compiles, not cache hits
+    done = subprocess.run(
+        [sys.executable, "-m", "benchmarks.compile_reuse", "--child", "--mesh", args.mesh,
+         "--structure", args.structure, "--counts", args.counts],
+        capture_output=True, text=True, env=env, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"the {mode!r} run failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None, prog=None) -> dict:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--mesh", default="camel-19k", help="a shipped mesh (camel-19k)")
+    parser.add_argument("--structure", default="bvh", help="an accel structure (bvh)")
+    parser.add_argument("--counts", default="1000,1001,1500,3000",
+                        help="ray counts, called in this order (the first compiles)")
+    parser.add_argument("--json", default=None, help="also write the record here")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    try:
+        counts = [int(c) for c in args.counts.split(",")]
+    except ValueError:
+        counts = []
+    if not counts or any(c < 1 for c in counts):
+        parser.error(f"--counts must be positive integers separated by commas, got "
+                     f"{args.counts!r}")
+    if args.child:
+        record = _child(args.mesh, args.structure, counts)
+        print(json.dumps(record))
+        return record
+
+    record = {"counts": counts, "modes": {}}
+    for mode in MODES:
+        result = _run_mode(mode, args)
+        record["modes"][mode] = result
+        record["mesh"], record["structure"] = result["mesh"], result["structure"]
+    print(f"{record['mesh']}; {record['structure']}; closest_hit, compile included "
+          "(programs: traversal programs compiled so far)")
+    print(f"{'rays':>7} " + " ".join(f"{m + ' s (programs)':>24}" for m in MODES))
+    for i, n in enumerate(counts):
+        cells = []
+        for mode in MODES:
+            call = record["modes"][mode]["calls"][i]
+            cells.append(f"{call['seconds']:>16.3f} ({call['programs']})".rjust(24))
+        print(f"{n:>7} " + " ".join(cells))
+    if args.json:
+        write_record(record, args.json)
+    return record
+
+
+if __name__ == "__main__":
+    main()
