@@ -52,13 +52,18 @@ def ns_per_n_log2_n(seconds: float, n: int) -> float:
     return seconds / (n * math.log2(n)) * 1e9 if n > 1 else float("nan")
 
 
+#: Distinct sizes a power law is fitted through: two points always lie on a line, so a
+#: slope through two says nothing of the law (a quick run's two sizes gave N^1.61 and N^1.03).
+MIN_FIT_SIZES = 3
+
+
 def fit_exponent(counts, values) -> float:
     """k of ``value ~ count^k``: the slope of log(value) against log(count), least squares.
 
-    NaN with fewer than two distinct counts.
+    NaN (written as null) with fewer than :data:`MIN_FIT_SIZES` distinct counts.
     """
     counts, values = np.asarray(counts, float), np.asarray(values, float)
-    if len(np.unique(counts)) < 2:
+    if len(np.unique(counts)) < MIN_FIT_SIZES:
         return float("nan")
     return float(np.polyfit(np.log(counts), np.log(values), 1)[0])
 
@@ -87,7 +92,8 @@ def main(argv=None) -> dict:
                   f"{rows[-1]['ns_per_n_log2_n']:.2f} ns per N log2 N", flush=True)
         exponent = fit_exponent([r["triangles"] for r in rows],
                                 [r["seconds_median"] for r in rows])
-        print(f"{name:<7} fitted exponent: time ~ N^{exponent:.2f}", flush=True)
+        print(f"{name:<7} fitted exponent: " + (f"time ~ N^{exponent:.2f}" if exponent == exponent
+              else f"not fitted ({len(rows)} sizes; {MIN_FIT_SIZES} needed)"), flush=True)
         record["structures"][name] = {"rows": rows, "exponent": exponent}
     write_record(record, args.json)
     return record

@@ -1,6 +1,6 @@
 """``jrt study``: the whole study of the camel in one command.
 
-    jrt study [-o reports/camel] [--quick | --full] [--skip STEPS] [--structures NAMES]
+    jrt study [-o DIR | --publish] [--quick | --full] [--skip STEPS] [--structures NAMES]
 
 Runs, in this order, each writing its JSON into the output folder:
 
@@ -12,12 +12,18 @@ Runs, in this order, each writing its JSON into the output folder:
 5. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
    the figures.
 
-Defaults fit in about 15 minutes on 2 cores (the full benchmark suite, the stability
-suite at its ``standard`` size, the work-precision study's quick points); ``--full`` runs
-the stability suite's full sweep and every work-precision point as well (about 45
+The output folder is ``./study`` in the working directory unless ``-o`` names another
+(the repository ignores ``study/``). The published study, the repository's
+``reports/camel/``, is rewritten only on request and only by a full run: ``--publish``
+(``-o reports/camel --full``); any other size aimed at that folder is refused unless
+``--force``, so that a smoke test never replaces the published figures.
+
+Defaults take about 15 minutes on 2 cores (the full benchmark suite, the stability suite
+at its ``standard`` size, the work-precision study's quick points); ``--full`` runs the
+stability suite's full sweep and every work-precision point as well (more than 30
 minutes: what ``reports/camel/`` is published from); ``--quick`` (small ray sets, the
-19k camel where a step allows it, small images) in about five minutes, and is what CI
-runs. ``--structures`` limits the benchmark suite to some acceleration structures (brute
+19k camel where a step allows it, small images) about five minutes, and is what CI runs.
+``--structures`` limits the benchmark suite to some acceleration structures (brute
 force, its reference, always runs; the stability suite picks its own per case). A step
 that fails stops the study with its error; the JSON of the steps before it stays in the
 folder.
@@ -26,10 +32,20 @@ folder.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
+
+#: The command name in usage and errors when run as ``python -m benchmarks.study``
+#: (``jrt study`` passes its own).
+PROG = "python -m benchmarks.study"
+#: Where a study goes unless ``-o`` says otherwise: relative to the working directory.
+DEFAULT_OUTPUT = Path("study")
+#: The published study, tracked in the repository: written by ``--publish`` only (or by
+#: ``-o`` naming it with ``--full``, or ``--force``).
+PUBLISHED = Path(__file__).resolve().parents[1] / "reports" / "camel"
 
 #: Render sizes (width, height) of the built-in scenes, full and --quick.
 RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
@@ -40,36 +56,77 @@ SCENES = ("camel", "glass-camel", "mirror-camel")
 CLOSEUP = {"above_centre": 0.22, "vfov": 11.0, "samples": 16}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="jrt study", description=__doc__.split("\n\n")[0])
-    parser.add_argument("-o", "--output", default="reports/camel",
-                        help="folder for the JSON, the renders and the report "
-                        "(default reports/camel)")
+        prog=prog,
+        description="The whole study of the camel in one command: the benchmark suite, the "
+        "stability suite, the work-precision study and renders of the built-in scenes, each "
+        "written into DIR, then the report (README.md, index.html, figures) from all of it. "
+        "The default size takes about 15 minutes on 2 cores, --full more than 30, --quick "
+        "about 5.",
+        epilog="The published study (reports/camel in the repository) is rewritten only by "
+        "--publish, or by -o naming it with --full; any other size aimed at it is refused "
+        "unless --force.")
+    parser.add_argument("-o", "--output", default=None, metavar="DIR",
+                        help=f"folder for the JSON, the renders and the report (default "
+                        f"./{DEFAULT_OUTPUT} in the working directory)")
+    parser.add_argument("--publish", action="store_true",
+                        help="rewrite the published study: the same as -o reports/camel "
+                        "--full (the repository's reports/camel)")
+    parser.add_argument("--force", action="store_true",
+                        help="allow a --quick or default-size run to write into "
+                        "reports/camel")
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true",
                       help="small sizes: a smoke test of the whole chain (CI)")
     size.add_argument("--full", action="store_true",
-                      help="the stability suite's full sweep (about 45 minutes in all): "
-                      "the published study")
-    parser.add_argument("--skip", default="",
+                      help="the stability suite's full sweep and every work-precision "
+                      "point: the published study's size")
+    parser.add_argument("--skip", default="", metavar="STEPS",
                         help="comma-separated steps to skip, from bench, stability, "
                         "work_precision, renders (their JSON, if present, is reused)")
-    parser.add_argument("--structures", type=structure_names, default=None,
+    parser.add_argument("--structures", type=structure_names, default=None, metavar="NAMES",
                         help="comma-separated acceleration structures for the benchmark "
                         f"suite, from {', '.join(ENGINE_STRUCTURES)} (default all; brute "
                         "force always runs)")
     return parser
 
 
+def output_folder(args, parser: argparse.ArgumentParser) -> Path:
+    """The folder a study of these options writes into (``./study`` by default), after
+    the published study's rule: ``--publish`` means ``-o reports/camel --full``, and a run
+    of another size aimed at ``reports/camel`` is an error unless ``--force``. Sets
+    ``args.full`` for ``--publish``; exits through ``parser.error`` on a refusal, before
+    anything is written."""
+    if args.publish:
+        if args.quick:
+            parser.error("--publish rewrites the published study at its full size; it "
+                         "cannot be --quick (a quick study goes to ./study by default)")
+        if args.output is not None and Path(args.output).resolve() != PUBLISHED.resolve():
+            parser.error(f"--publish writes into {PUBLISHED}; give --publish or -o "
+                         f"{args.output}, not both")
+        args.full = True
+        # Relative where it can be: the commands recorded in the report name this path.
+        return Path(os.path.relpath(PUBLISHED)) if PUBLISHED.is_relative_to(Path.cwd()) \
+            else PUBLISHED
+    out = DEFAULT_OUTPUT if args.output is None else Path(args.output)
+    if out.resolve() == PUBLISHED.resolve() and not args.full and not args.force:
+        size = "--quick" if args.quick else "default-size"
+        parser.error(f"{out} holds the published study, made by a --full run; a {size} "
+                     "run would replace its figures. Rewrite it with --publish (or -o "
+                     f"{out} --full), write elsewhere (default ./{DEFAULT_OUTPUT}), or add "
+                     "--force")
+    return out
+
+
 STEPS = ("bench", "stability", "work_precision", "renders")
 
 
-def _check_skip(text: str) -> set[str]:
+def _check_skip(text: str, prog: str = PROG) -> set[str]:
     skip = {s.strip() for s in text.split(",") if s.strip()}
     unknown = sorted(skip - set(STEPS))
     if unknown:
-        raise SystemExit(f"jrt study: error: unknown step(s) {unknown} in --skip; "
+        raise SystemExit(f"{prog}: error: unknown step(s) {unknown} in --skip; "
                          f"allowed: {', '.join(STEPS)}")
     return skip
 
@@ -130,10 +187,13 @@ def _render_scenes(quick: bool) -> list[str]:
     return images
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    skip = _check_skip(args.skip)
-    out = Path(args.output)
+def main(argv=None, prog: str = PROG) -> int:
+    """``jrt study``: run the steps and the report; 0 on success. ``prog`` names the
+    command in usage and errors."""
+    parser = build_parser(prog)
+    args = parser.parse_args(argv)
+    skip = _check_skip(args.skip, prog)
+    out = output_folder(args, parser)
     out.mkdir(parents=True, exist_ok=True)
     quick = ["--quick"] if args.quick else []
     start = time.perf_counter()
@@ -163,7 +223,7 @@ def main(argv=None) -> int:
 
     present = [str(p) for p in jsons.values() if p.exists()]
     if not present:
-        raise SystemExit("jrt study: error: no results to report (every step skipped and "
+        raise SystemExit(f"{prog}: error: no results to report (every step skipped and "
                          f"no JSON in {out})")
     report_args = present + ["-o", str(out)]
     for image in images:

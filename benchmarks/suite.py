@@ -22,8 +22,8 @@ One run measures, in this order, and writes one record per measurement under
   warm calls (``jax.block_until_ready``), and every row carries its ratio to Embree's
   median rate on the same rays. Per ray: traversal steps, triangle tests, leaves (mean,
   p95, max), from a separate run with the engine's counters. trimesh's rtree intersector
-  runs on ``--trimesh-rays`` of each set (one call, one thread); Open3D and Mitsuba 3
-  (llvm) when importable.
+  runs on ``--trimesh-rays`` of each set (one call, one thread) when ``rtree`` is
+  installed; Open3D and Mitsuba 3 (llvm) when importable.
 - ``correctness``: every structure's hits on ``--brute-rays`` distinct rays of each set
   (all of them, some repeated, when a set has fewer) against brute force (same kernel:
   triangle, t, u, v bit for bit; ``occluded`` for shadow rays), and, for orientation,
@@ -109,7 +109,14 @@ def _non_negative(value: str) -> int:
     return number
 
 
-def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
+#: The command name in usage and errors when run as ``python -m benchmarks`` (``jrt bench``
+#: passes its own).
+PROG = "python -m benchmarks"
+#: Where the results go by default (relative to the working directory).
+DEFAULT_OUTPUT = "out/bench.json"
+
+
+def build_parser(add_help: bool = True, prog: str = PROG) -> argparse.ArgumentParser:
     """The suite's options (``jrt bench`` reuses them: pass ``add_help=False`` for parents)."""
     full, quick = DEFAULTS["full"], DEFAULTS["quick"]
 
@@ -117,12 +124,13 @@ def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
         return f"default {full[key]}, --quick {quick[key]}"
 
     parser = argparse.ArgumentParser(
-        prog="python -m benchmarks", add_help=add_help,
+        prog=prog, add_help=add_help,
         description="Every acceleration structure on the camel beside Embree: build, trace "
                     "(camera, shadow, reflected, refracted, incoherent rays), correctness, "
                     "scaling and cost model, written as JSON.")
-    parser.add_argument("-o", "--output", default="out/bench.json",
-                        help="JSON results (default out/bench.json)")
+    parser.add_argument("-o", "--output", default=DEFAULT_OUTPUT, metavar="JSON",
+                        help=f"the results' JSON file (default {DEFAULT_OUTPUT}, in the "
+                             "working directory)")
     parser.add_argument("--quick", action="store_true",
                         help="CI's smoke test: the 19k camel, 64x64 rays a set, 2 repeats, "
                              "two scaling meshes")
@@ -170,9 +178,10 @@ def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> dict:
-    """``python -m benchmarks``: parse, run, write the JSON; returns the results."""
-    parser = build_parser()
+def main(argv=None, prog: str = PROG) -> dict:
+    """``python -m benchmarks`` (``jrt bench``): parse, run, write the JSON; returns the
+    results. ``prog`` names the command in usage and errors."""
+    parser = build_parser(prog=prog)
     args = parser.parse_args(argv)
     try:
         return run(args)
@@ -418,6 +427,10 @@ def trimesh_rows(mesh, sets, embree_rates, count: int, seed: int, log) -> list[d
     """trimesh's rtree intersector (one thread, one call) on ``count`` rays of each set."""
     if count == 0:
         return [_absent_peer("trimesh", "skipped", "--trimesh-rays 0")]
+    if importlib.util.find_spec("rtree") is None:  # trimesh's intersector needs it
+        log("trimesh: not installed (its ray intersector needs rtree: pip install rtree)")
+        return [_absent_peer("trimesh", "not installed",
+                             "pip install rtree (trimesh's ray intersector needs it)")]
     try:
         import trimesh
         from trimesh.ray.ray_triangle import RayMeshIntersector
@@ -565,7 +578,7 @@ class Tracer:
 
         o, d, tmax = arrays
         if query == "occluded":
-            out = jrt.occluded(structure, o, d, tmax, kernel=self.kernel, counters=counters)
+            out = jrt.occluded(structure, o, d, tmax=tmax, kernel=self.kernel, counters=counters)
         else:
             out = jrt.closest_hit(structure, o, d, kernel=self.kernel, tmax=tmax,
                                   counters=counters)
@@ -638,7 +651,7 @@ def _device_arrays(ray_set: RaySet):
 def _brute_reference(brute, ray_set: RaySet, idx, kernel: str) -> dict:
     o, d = ray_set.origins[idx], ray_set.directions[idx]
     if ray_set.query == "occluded":
-        return {"occluded": np.asarray(jrt.occluded(brute, o, d, ray_set.tmax[idx],
+        return {"occluded": np.asarray(jrt.occluded(brute, o, d, tmax=ray_set.tmax[idx],
                                                     kernel=kernel))}
     return {k: np.asarray(v) for k, v in jrt.closest_hit(brute, o, d, kernel=kernel)
             ._asdict().items()}
@@ -1066,8 +1079,9 @@ def scaling_records(mesh, p, names, traces, records, tracer, threads, embree_cls
                                                     for row in r]),
             "note": "exponents: slope of log(time) against log(N); the trace time is for a "
                     "fixed number of camera rays"})
-        log(f"scaling {name:<7} build ~ N^{out[-1]['build_exponent']:.2f}, trace time ~ "
-            f"N^{out[-1]['trace_exponent']:.2f}")
+        build_k, trace_k = out[-1]["build_exponent"], out[-1]["trace_exponent"]
+        log(f"scaling {name:<7} " + (f"build ~ N^{build_k:.2f}, trace time ~ N^{trace_k:.2f}"
+            if build_k == build_k else f"exponents not fitted ({len(set(counts))} sizes)"))
     return out
 
 

@@ -1,5 +1,5 @@
 """Images per second of a turntable of the glass camel: one batched render (jrt.batch)
-against a Python loop of single renders (jrt.whitted), issue 9.
+against a Python loop of single renders (jrt.whitted).
 
     python -m benchmarks.turntable [-o turntable.json] [--quick] [--frames N]
                                    [--width W --height H] [--samples S] [--depth D]
@@ -7,9 +7,11 @@ against a Python loop of single renders (jrt.whitted), issue 9.
 
 The scene is the built-in ``glass-camel`` (its mesh swapped to ``--mesh``, by default the
 19k-triangle camel) with ``--samples`` wavelength samples; the turntable is
-:func:`jrt.batch.turntable` (N frames, 360/N degrees apart about +y). Three ways to render
-the same N frames, each timed after a warm-up of the same shapes at depth 1 (compiling left
-out and recorded apart), best of ``--repeats``:
+:func:`jrt.batch.turntable` (N frames, 360/N degrees apart about +y, around the scene's
+automatic framing, :func:`jrt.camera.frame_mesh`, which fits the camel's bounding sphere:
+every frame shows the whole camel). Three ways to render the same N frames, each timed
+after a warm-up of the same shapes at depth 1 (compiling left out and recorded apart), best
+of ``--repeats``:
 
 * ``batched``: :func:`jrt.batch.render_batch` over the N cameras (its own memory plan);
 * ``loop``: N calls of :func:`jrt.whitted.render_radiance`, the library's default chunk

@@ -8,25 +8,34 @@ they are imported only when their command runs, so the other commands do not pay
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 import accel
 import jrt  # (applies the XLA flags before JAX starts)
-from jrt.data import camel_path
+from jrt.data import MESHES, mesh_path
 from jrt.kernels import DEFAULT_KERNEL, KERNELS
-from jrt.mesh import MeshError, load_mesh
+from jrt.mesh import MeshError, MeshWarning, load_mesh
 from jrt.rays_io import RaysFileError, load_rays, save_hits
+
+#: The command line's own description (plain text: argparse prints it as it is).
+DESCRIPTION = ("jrt traces rays through triangle meshes with JAX. 'jrt trace' and 'jrt render' "
+               "use the library; 'jrt bench', 'jrt study' and 'jrt report' run the benchmark "
+               "suite, the whole study of the camel and the report generator (each has its own "
+               "options: jrt COMMAND --help).")
 
 
 def _mesh(arg: str | None):
-    """A path, or a short name of the project's meshes (camel, camel-19k)."""
-    if arg is None or arg in ("camel", "camel-19k"):
-        return load_mesh(camel_path(arg or "camel"))
+    """A path, or a short name of a shipped mesh (``jrt.data.MESHES``: camel, camel-19k,
+    bunny, teapot, fandisk)."""
+    if arg is None or arg in MESHES:
+        return load_mesh(mesh_path(arg or "camel"))
     return load_mesh(arg)
 
 
@@ -37,21 +46,51 @@ def _cmd_trace(args) -> int:
     origins, directions, tmax = load_rays(args.rays)
     print(mesh.summary())
     structure = accel.build(args.accel, mesh.vertices, mesh.faces)
+
+    def query(o, d):
+        if args.any_hit:
+            return {"occluded": np.asarray(occluded(structure, o, d, tmax=tmax,
+                                                    kernel=args.kernel))}
+        return as_numpy(closest_hit(structure, o, d, kernel=args.kernel, tmax=tmax))
+
+    n = len(origins)
+    timing = ""
+    if n:
+        # Compile first, on rays of the same shapes that leave the mesh's box at once, so
+        # that the timed call below traces the file's rays and nothing else.
+        start = time.perf_counter()
+        query(*_rays_away(mesh, n))
+        compile_seconds = time.perf_counter() - start
     start = time.perf_counter()
+    result = query(origins, directions)
+    seconds = time.perf_counter() - start
+    if n:
+        timing = (f" in {seconds:.3f} s ({_rate(n, seconds)}; compiled first, in "
+                  f"{compile_seconds:.2f} s)")
     if args.any_hit:
-        result = {"occluded": np.asarray(occluded(structure, origins, directions, tmax,
-                                                  kernel=args.kernel))}
         summary = f"{int(result['occluded'].sum()):,} occluded"
     else:
-        result = as_numpy(closest_hit(structure, origins, directions, kernel=args.kernel,
-                                      tmax=tmax))
         summary = f"{int((result['triangle'] >= 0).sum()):,} hits"
-    seconds = time.perf_counter() - start
     out = save_hits(args.output, **result)
-    n = len(origins)
-    print(f"{n:,} rays, {summary}, {seconds:.2f} s ({n / seconds / 1e6:.3f} Mrays/s, "
-          f"compile included) -> {out}")
+    print(f"{n:,} rays, {summary}{timing} -> {out}")
     return 0
+
+
+def _rays_away(mesh, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """float32 [n, 3] origins beyond the mesh box's upper corner and +x directions: rays
+    that leave the box at once, for a compile on the shapes of ``n`` rays."""
+    corner = mesh.bounds[1].astype(np.float64) + max(mesh.diagonal, 1.0)
+    origins = np.broadcast_to(corner.astype(np.float32), (n, 3)).copy()
+    directions = np.zeros((n, 3), np.float32)
+    directions[:, 0] = 1.0
+    return origins, directions
+
+
+def _rate(rays: int, seconds: float) -> str:
+    """Rays per second in Mrays/s, at least three significant digits (a small batch's
+    rate reads 0.000585, not 0.000)."""
+    mrays = rays / seconds / 1e6 if seconds > 0 else float("inf")
+    return f"{mrays:,.0f} Mrays/s" if mrays >= 100 else f"{mrays:.3g} Mrays/s"
 
 
 def _cmd_render(args) -> int:
@@ -66,6 +105,7 @@ def _cmd_render(args) -> int:
     from skimage import io
 
     from jrt.camera import frame_mesh
+    from jrt.normals import DEFAULT_CREASE_ANGLE
     from jrt.render import render_lambert, to_srgb8
 
     accel_name = args.accel or "bvh"
@@ -76,12 +116,24 @@ def _cmd_render(args) -> int:
     structure = accel.build(accel_name, mesh.vertices, mesh.faces)
     camera = frame_mesh(mesh.vertices, width=width, height=height, vfov=args.vfov,
                         azimuth=args.azimuth, elevation=args.elevation)
-    image, stats = render_lambert(mesh, structure, camera, kernel=kernel,
-                                  shadows=not args.no_shadows, ambient=args.ambient)
+    crease = DEFAULT_CREASE_ANGLE if args.crease_angle is None else args.crease_angle
+
+    def render():
+        return render_lambert(mesh, structure, camera, kernel=kernel,
+                              shadows=not args.no_shadows, ambient=args.ambient,
+                              crease_angle=crease)
+
+    # The first render compiles its queries (and is timed as such); the second, on the
+    # same shapes, is the render's own time.
+    first = render()[1].seconds
+    image, stats = render()
     out = Path(args.output or "camel.png")
     out.parent.mkdir(parents=True, exist_ok=True)
     io.imsave(out, to_srgb8(image), check_contrast=False)
-    print(f"{accel_name}/{kernel} {stats.summary()} (compile included) -> {out}")
+    print(f"{accel_name}/{kernel} {stats.width}x{stats.height}: {stats.primary_rays:,} camera "
+          f"rays + {stats.shadow_rays:,} shadow rays in {stats.seconds:.2f} s "
+          f"({_rate(stats.rays, stats.seconds)}; compiled first, in a render of "
+          f"{first:.2f} s) -> {out}")
     return 0
 
 
@@ -107,6 +159,9 @@ def _render_scene(args) -> int:
         ("samples", args.samples)) if value is not None}
     if changes:
         scene = dataclasses.replace(scene, settings=dataclasses.replace(settings, **changes))
+    if args.crease_angle is not None:
+        scene = dataclasses.replace(scene, objects=tuple(
+            dataclasses.replace(o, crease_angle=args.crease_angle) for o in scene.objects))
     width = args.width or scene.camera.width
     height = args.height or scene.camera.height
     if args.turntable is not None and args.sweep is not None:
@@ -117,7 +172,7 @@ def _render_scene(args) -> int:
     if args.turntable is not None:
         return _render_turntable(args, setup, width, height)
     geometry = setup.geometry
-    print(f"{scene.name}: {geometry.mesh.summary()}; {scene.settings.accel} built in "
+    print(f"{geometry.mesh.summary()}; {scene.settings.accel} built in "
           f"{setup.structure.stats.get('build_seconds', float('nan')):.2f} s")
     image, stats = render_scene(setup, width=width, height=height)
     out = Path(args.output or f"{scene.name}.png")
@@ -212,6 +267,18 @@ def _frames(text: str) -> int:
     return value
 
 
+def _crease_angle(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 <= value <= 180.0:
+        raise argparse.ArgumentTypeError(
+            f"DEG must be a number of degrees in [0, 180] (0 flat, 180 all smooth), "
+            f"got {text!r}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -220,7 +287,7 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jrt", description=__doc__)
+    parser = argparse.ArgumentParser(prog="jrt", description=DESCRIPTION)
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p, scene_default=False):
@@ -232,7 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"acceleration structure (default bvh{also}; brute is the oracle)")
 
     trace = sub.add_parser("trace", help="closest hits (or occlusion) of rays from a file")
-    trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL), or 'camel' / 'camel-19k'")
+    trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL, or .gz of one), or a "
+                       f"shipped mesh: {', '.join(MESHES)}")
     trace.add_argument("rays",
                        help=".npz with origins, directions float32 [N,3], optional tmax [N]")
     trace.add_argument("-o", "--output", required=True, help="output .npz of hits")
@@ -245,7 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
         "render", help="render a mesh (Lambert, default: the camel) or a scene (--scene, "
         "Whitted) to a PNG")
     render.add_argument("mesh", nargs="?", default=None,
-                        help="mesh file or 'camel' / 'camel-19k' (default camel)")
+                        help=f"mesh file, or a shipped mesh: {', '.join(MESHES)} "
+                        "(default camel)")
     render.add_argument("--scene", default=None, metavar="NAME|FILE",
                         help="render a scene with the Whitted tree: a built-in name (camel, "
                         "glass-camel, mirror-camel) or a .toml scene file")
@@ -279,6 +348,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"ambient share in [0, 1]{mesh_only}")
     render.add_argument("--no-shadows", action="store_true",
                         help=f"skip the shadow rays{mesh_only}")
+    render.add_argument("--crease-angle", type=_crease_angle, default=None, metavar="DEG",
+                        help="edges whose faces meet at more than DEG degrees shade sharp, "
+                        "the others smooth (0 flat, 180 all smooth; default 30, or with "
+                        "--scene each object's crease_angle, which DEG then replaces)")
     common(render, scene_default=True)
     render.set_defaults(run=_cmd_render)
 
@@ -298,10 +371,11 @@ DELEGATED = (
 )
 
 
-def _delegate(module: str, argv: list[str]) -> int:
+def _delegate(name: str, module: str, argv: list[str]) -> int:
+    """Run ``module.main(argv, prog="jrt NAME")``: its usage and errors name the command."""
     import importlib
 
-    result = importlib.import_module(module).main(argv)
+    result = importlib.import_module(module).main(argv, prog=f"jrt {name}")
     return result if isinstance(result, int) else 0
 
 
@@ -311,15 +385,35 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     modules = {name: module for name, module, _ in DELEGATED}
-    if args.command in modules:
-        return _delegate(modules[args.command], extra)
-    if extra:
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    try:
-        return args.run(args)
-    except (MeshError, RaysFileError, FileNotFoundError, ValueError) as exc:
-        print(f"jrt {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    with _notes(args.command):
+        if args.command in modules:
+            return _delegate(args.command, modules[args.command], extra)
+        if extra:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        try:
+            return args.run(args)
+        except (MeshError, RaysFileError, FileNotFoundError, ValueError) as exc:
+            print(f"jrt {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+
+
+@contextlib.contextmanager
+def _notes(command: str):
+    """jrt's own warnings (:class:`jrt.mesh.MeshWarning`: degenerate triangles, polygons
+    split into triangles) printed as ``jrt COMMAND: note: ...`` on stderr, every time and
+    without Python's source line; other warnings as Python shows them."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", MeshWarning)
+        python_show = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if issubclass(category, MeshWarning):
+                print(f"jrt {command}: note: {message}", file=sys.stderr)
+            else:
+                python_show(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield
 
 
 if __name__ == "__main__":

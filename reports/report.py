@@ -44,6 +44,7 @@ import datetime
 import html
 import json
 import math
+import os
 import platform
 import re
 import shlex
@@ -1873,7 +1874,10 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
     doc.heading(1, title or "jrt: acceleration structures on the camel")
     kinds = {"bench": "benchmark suite", "stability": "stability suite",
              "work_precision": "work–precision records"}
-    doc.para("Generated from " + _join(f"`{p}` ({kinds[k]})" for p, k in inputs.kinds)
+    # Inputs named relative to the report (beside it, as a study writes them): a path of
+    # the machine that made it means nothing to a reader.
+    doc.para("Generated from " + _join(f"`{os.path.relpath(p, out)}` ({kinds[k]})"
+                                       for p, k in inputs.kinds)
              + f" by `{REPORT_COMMAND}`. Figures are PNG files beside this page; `index.html` "
              "is the same report with the figures embedded.")
     if inputs.indicative:
