@@ -13,6 +13,7 @@ import inspect
 
 import numpy as np
 
+from accel.geometry import mesh_arrays
 from accel.structure import Structure
 
 #: The structures, each a module ``accel.<name>`` with ``build(vertices, faces, **params)``
@@ -99,12 +100,7 @@ def build(name: str, mesh, faces=None, /, **params) -> Structure:
         raise TypeError(f"unknown parameter {key!r} for accel.build({name!r}, ...){hint}; "
                         f"its parameters (with defaults): {listed}")
     vertices, faces = _mesh_arrays(mesh, faces)
-    vertices = np.asarray(vertices)
-    faces = np.asarray(faces)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"vertices must have shape [V, 3], got {vertices.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"faces must have shape [F, 3], got {faces.shape}")
+    vertices, faces = mesh_arrays(vertices, faces)
     bad = ~np.isfinite(vertices).all(axis=1) if vertices.size else np.zeros(0, bool)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])

@@ -5,6 +5,21 @@ from __future__ import annotations
 import numpy as np
 
 
+def mesh_arrays(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """``vertices`` [V, 3] and ``faces`` [F, 3] as arrays, refused with the shape or the face
+    index that is wrong (every builder and ``jrt.corner_normals`` index vertices by faces)."""
+    vertices = np.asarray(vertices)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices must have shape [V, 3], got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces must have shape [F, 3], got {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"face indices must be in 0..{len(vertices) - 1}, got "
+                         f"{int(faces.min())}..{int(faces.max())}")
+    return vertices, faces
+
+
 def triangle_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """float32 [F, 3, 3]: the three corners of every face."""
     return np.ascontiguousarray(np.asarray(vertices, np.float32)[np.asarray(faces)])

@@ -43,6 +43,8 @@ import math
 import numpy as np
 from jaxtyping import Float, Int
 
+from accel.geometry import mesh_arrays
+
 #: Default crease angle in degrees (Blender's auto-smooth default is 30°).
 DEFAULT_CREASE_ANGLE = 30.0
 
@@ -103,14 +105,7 @@ def corner_normals(
     hit with barycentrics (u, v) the shading normal is ``normalise((1-u-v) n0 + u n1 + v n2)``.
     """
     angle = _check_angle(crease_angle)
-    vertices = np.asarray(vertices)
-    faces = np.asarray(faces)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"vertices must have shape [V, 3], got {vertices.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"faces must have shape [F, 3], got {faces.shape}")
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise ValueError(f"face indices must be in 0..{len(vertices) - 1}")
+    vertices, faces = mesh_arrays(vertices, faces)
     n_faces = len(faces)
     if n_faces == 0:
         return np.zeros((0, 3, 3), np.float32)

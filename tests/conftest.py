@@ -8,6 +8,7 @@ import os
 import shutil
 import tempfile
 
+import numpy as np
 import pytest
 
 # One on-disk JAX compilation cache for the test session: the xdist workers and the
@@ -54,6 +55,16 @@ def camel():
 def camel19k():
     """The 19k-triangle camel: the far-away, scaled and multi-mesh tests' smaller mesh."""
     return load_mesh(mesh_path("camel-19k"))
+
+
+@pytest.fixture(scope="session")
+def camel19k_api_rays(camel19k):
+    """1,100 incoherent rays of the 19k camel (about 40 % hit; not a size bucket, so 1,536
+    are traced), a third of them stopped at a finite tmax: the API and x64 tests' rays."""
+    origins, directions = incoherent_set(camel19k.vertices, 1100, seed=3)
+    rng = np.random.default_rng(3)
+    tmax = np.where(rng.random(1100) < 1 / 3, np.float32(0.8 * camel19k.diagonal), np.inf)
+    return origins, directions, tmax.astype(np.float32)
 
 
 @pytest.fixture(scope="session")

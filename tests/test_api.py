@@ -26,7 +26,6 @@ import accel
 import jrt
 from jrt import brute as jrt_brute
 from jrt import engine, trace
-from jrt.raysets import incoherent_set
 from jrt.trace import as_numpy
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,12 +45,8 @@ def built(mesh):
 
 
 @pytest.fixture(scope="module")
-def rays(mesh):
-    """N incoherent rays (about 40 % hit), a third of them stopped at a finite tmax."""
-    origins, directions = incoherent_set(mesh.vertices, N, seed=3)
-    rng = np.random.default_rng(3)
-    tmax = np.where(rng.random(N) < 1 / 3, np.float32(0.8 * mesh.diagonal), np.inf)
-    return origins, directions, tmax.astype(np.float32)
+def rays(camel19k_api_rays):
+    return camel19k_api_rays
 
 
 @pytest.fixture(scope="module")

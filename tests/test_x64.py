@@ -22,7 +22,6 @@ import pytest
 
 import accel
 import jrt
-from jrt.raysets import incoherent_set
 from jrt.trace import as_numpy
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,11 +108,8 @@ with open(out + ".json", "w") as f:
 
 
 @pytest.fixture(scope="module")
-def rays(camel19k):
-    origins, directions = incoherent_set(camel19k.vertices, N, seed=3)
-    rng = np.random.default_rng(3)
-    tmax = np.where(rng.random(N) < 1 / 3, np.float32(0.8 * camel19k.diagonal), np.inf)
-    return origins, directions, tmax.astype(np.float32)
+def rays(camel19k_api_rays):
+    return camel19k_api_rays
 
 
 @pytest.fixture(scope="module")
