@@ -3,6 +3,12 @@
 ``jrt bench`` hands its options to the benchmark suite (``benchmarks/suite.py``, also
 ``python -m benchmarks``), ``jrt report`` to the report generator (``reports/report.py``);
 they are imported only when their command runs, so the other commands do not pay for them.
+
+``jrt trace`` and ``jrt render`` keep their compiled XLA programs on disk
+(:mod:`jrt.compile_cache`): a second run in a new process loads them instead of compiling.
+``JRT_CACHE_DIR`` names the folder (default ``$XDG_CACHE_HOME/jrt/jax`` or
+``~/.cache/jrt/jax``), ``JRT_CACHE_DIR=0`` turns the cache off, and a
+``JAX_COMPILATION_CACHE_DIR`` of your own is left as it is.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import numpy as np
 
 import accel
 import jrt  # (applies the XLA flags before JAX starts)
+from jrt.compile_cache import enable as enable_compile_cache
 from jrt.data import MESHES, mesh_path
 from jrt.kernels import DEFAULT_KERNEL, KERNELS
 from jrt.mesh import MeshError, MeshWarning, load_mesh
@@ -29,6 +36,16 @@ DESCRIPTION = ("jrt traces rays through triangle meshes with JAX. 'jrt trace' an
                "use the library; 'jrt bench', 'jrt study' and 'jrt report' run the benchmark "
                "suite, the whole study of the camel and the report generator (each has its own "
                "options: jrt COMMAND --help).")
+
+#: The help's closing note: the environment variable of the compilation cache.
+EPILOG = ("'jrt trace' and 'jrt render' keep their compiled programs on disk, so a second run "
+          "skips compiling: JRT_CACHE_DIR=DIR names the folder (default "
+          "$XDG_CACHE_HOME/jrt/jax or ~/.cache/jrt/jax), JRT_CACHE_DIR=0 turns the cache off, "
+          "and a JAX_COMPILATION_CACHE_DIR you set is used as it is.")
+
+#: Commands that use the on-disk compilation cache (jrt bench and jrt study measure
+#: compile times, so they compile every time).
+CACHED = ("trace", "render")
 
 
 def _mesh(arg: str | None):
@@ -287,7 +304,7 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jrt", description=DESCRIPTION)
+    parser = argparse.ArgumentParser(prog="jrt", description=DESCRIPTION, epilog=EPILOG)
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p, scene_default=False):
@@ -298,7 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--accel", choices=accel.NAMES, default=None if scene_default else "bvh",
                        help=f"acceleration structure (default bvh{also}; brute is the oracle)")
 
-    trace = sub.add_parser("trace", help="closest hits (or occlusion) of rays from a file")
+    trace = sub.add_parser("trace", help="closest hits (or occlusion) of rays from a file",
+                           epilog=EPILOG)
     trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL, or .gz of one), or a "
                        f"shipped mesh: {', '.join(MESHES)}")
     trace.add_argument("rays",
@@ -311,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     render = sub.add_parser(
         "render", help="render a mesh (Lambert, default: the camel) or a scene (--scene, "
-        "Whitted) to a PNG")
+        "Whitted) to a PNG", epilog=EPILOG)
     render.add_argument("mesh", nargs="?", default=None,
                         help=f"mesh file, or a shipped mesh: {', '.join(MESHES)} "
                         "(default camel)")
@@ -390,6 +408,8 @@ def main(argv: list[str] | None = None) -> int:
             return _delegate(args.command, modules[args.command], extra)
         if extra:
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        if args.command in CACHED:
+            enable_compile_cache(command=f"jrt {args.command}")
         try:
             return args.run(args)
         except (MeshError, RaysFileError, FileNotFoundError, ValueError) as exc:
