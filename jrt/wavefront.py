@@ -47,13 +47,11 @@ from jrt.whitted import (
     RenderSetup,
     RenderStats,
     SceneArrays,
-    _check_mode,
     _shade_chunk,
     _Static,
     _static,
-    _with,
     camera_level,
-    prepare,
+    render_arguments,
 )
 
 #: How many times :func:`render_radiance` re-renders with grown capacities before it gives
@@ -263,20 +261,9 @@ def render_radiance(
     A level that overflows its capacity is never lost: the render is run again with the
     capacities grown to the measured demand (:func:`grown_capacities`)."""
     start = time.perf_counter()
-    _check_mode(mode)
-    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
-        raise ValueError(f"spp must be a positive integer, got {spp!r}")
-    if mode == "tree" and spp != 1:
-        raise ValueError("spp > 1 is for mode='sampled' (the tree is deterministic)")
-    setup = (scene_or_setup if isinstance(scene_or_setup, RenderSetup)
-             else prepare(scene_or_setup, samples=samples))
-    setup = _with(setup, samples, None)
-    depth = setup.features.max_depth if max_depth is None else int(max_depth)
-    if not 1 <= depth <= 64:
-        raise ValueError(f"max_depth must be in 1..64, got {max_depth!r}")
-    threshold = setup.scene.settings.threshold if threshold is None else float(threshold)
-    if not 0.0 <= threshold < 1.0:
-        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
+    setup, depth, threshold = render_arguments(
+        scene_or_setup, max_depth=max_depth, samples=samples, mode=mode, spp=spp,
+        features=None, threshold=threshold)
     camera = setup.camera(width, height)
     host_rays = camera_level(setup, camera, spp)
     if capacities is None:

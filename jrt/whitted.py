@@ -755,6 +755,35 @@ def _accumulate(radiance: np.ndarray, rays: Rays, contributions: np.ndarray,
     radiance += np.bincount(index, weights=values, minlength=p * c).reshape(p, c)
 
 
+def render_arguments(
+    scene_or_setup: RenderSetup | Scene | str | Path,
+    *,
+    max_depth: int | None,
+    samples: int | None,
+    mode: str,
+    spp: int,
+    features: Features | None,
+    threshold: float | None,
+) -> tuple[RenderSetup, int, float]:
+    """A render's arguments checked, with the scene's defaults filled in: the setup, the
+    depth and the pruning threshold (every renderer takes its arguments through here)."""
+    _check_mode(mode)
+    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
+        raise ValueError(f"spp must be a positive integer, got {spp!r}")
+    if mode == "tree" and spp != 1:
+        raise ValueError("spp > 1 is for mode='sampled' (the tree is deterministic)")
+    setup = (scene_or_setup if isinstance(scene_or_setup, RenderSetup)
+             else prepare(scene_or_setup, features=features, samples=samples))
+    setup = _with(setup, samples, features)
+    depth = setup.features.max_depth if max_depth is None else int(max_depth)
+    if not 1 <= depth <= 64:
+        raise ValueError(f"max_depth must be in 1..64, got {max_depth!r}")
+    threshold = setup.scene.settings.threshold if threshold is None else float(threshold)
+    if not 0.0 <= threshold < 1.0:
+        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
+    return setup, depth, threshold
+
+
 def render_radiance(
     scene_or_setup: RenderSetup | Scene | str | Path,
     *,
@@ -777,21 +806,10 @@ def render_radiance(
     rendered at depth ``d + 1`` (levels ``0..d``), and the :class:`RenderStats`.
     """
     start = time.perf_counter()
-    _check_mode(mode)
     chunk = _check_chunk(chunk)
-    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
-        raise ValueError(f"spp must be a positive integer, got {spp!r}")
-    if mode == "tree" and spp != 1:
-        raise ValueError("spp > 1 is for mode='sampled' (the tree is deterministic)")
-    setup = (scene_or_setup if isinstance(scene_or_setup, RenderSetup)
-             else prepare(scene_or_setup, features=features, samples=samples))
-    setup = _with(setup, samples, features)
-    depth = setup.features.max_depth if max_depth is None else int(max_depth)
-    if not 1 <= depth <= 64:
-        raise ValueError(f"max_depth must be in 1..64, got {max_depth!r}")
-    threshold = setup.scene.settings.threshold if threshold is None else float(threshold)
-    if not 0.0 <= threshold < 1.0:
-        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
+    setup, depth, threshold = render_arguments(
+        scene_or_setup, max_depth=max_depth, samples=samples, mode=mode, spp=spp,
+        features=features, threshold=threshold)
     camera = setup.camera(width, height)
     if key is None:
         key = jax.random.PRNGKey(0)
@@ -914,6 +932,7 @@ __all__ = [
     "camera_level",
     "chunk_program",
     "prepare",
+    "render_arguments",
     "render_radiance",
     "render_scene",
     "shade_level",
