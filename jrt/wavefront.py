@@ -4,8 +4,12 @@
 
 The same tree as :func:`jrt.whitted.render_radiance` (its module doc says what a ray does at
 a surface), with the levels run inside one jitted function instead of one host round trip
-per level. Level ``d`` is a fixed-capacity batch of rays (``capacities[d]``, static); the
-padding rays carry ``valid = False`` and ``tmax = 0``, so they never hit and add nothing.
+per level. Level 0 (the camera rays) is a batch of ``capacities[0]`` rays; the later levels
+run in one ``lax.fori_loop`` whose body is compiled once, on batches of
+``max(capacities[1:])`` rays (static). The padding rays carry ``valid = False`` and
+``tmax = 0``, so they never hit and add nothing. Each level is shaded :data:`CHUNK` rays at
+a time (``lax.map``) by :func:`jrt.whitted._shade_chunk`, the host tree's own level function,
+so each ray's path is the same computation as on the host.
 Between levels, on the device:
 
 * **accumulation**: each ray's contribution is added into its pixel (and wavelength
@@ -58,6 +62,9 @@ from jrt.whitted import (
 #: up (each overflow fixes at least one level's capacity, so ``max_depth`` re-renders
 #: always suffice; the bound is a guard).
 MAX_RERENDERS = 64
+
+#: The later levels' capacity of a tree of depth 1 (they are never traced).
+_MIN_LATER = 1024
 
 #: Compiled trees, keyed by the static arguments and the argument shapes.
 _COMPILED: dict = {}
@@ -121,6 +128,67 @@ def _empty_level(capacity: int, k: int) -> LevelRays:
                      jnp.zeros(capacity, jnp.int32), jnp.zeros(capacity, bool))
 
 
+class _Carry(NamedTuple):
+    """What one level hands to the next inside :func:`trace_tree`'s loop."""
+
+    rays: LevelRays
+    radiance: Float[Array, " pc"]
+    traced: Int[Array, " d"]
+    demand: Int[Array, " d"]
+    overflow: Float[Array, " d"]
+    shadow: Int[Array, ""]
+    dropped: Float[Array, ""]
+    truncated: Float[Array, ""]
+
+
+def _level_step(structure, scene: SceneArrays, carry: _Carry, level, key, threshold, *,
+                static: _Static, next_capacity: int, last, channels: int) -> _Carry:
+    """Level ``level``: shade its rays, add their light into the pixels, and make the next
+    level from the kept children (none past the last level: their weight is truncated)."""
+    rays = carry.rays
+    k = rays.weights.shape[1]
+    out = _shade_level(structure, scene, rays, jax.random.fold_in(key, level), static)
+    contributions = jnp.where(rays.valid[:, None], out.contributions, 0.0)
+    if static.features.dispersion:
+        index = rays.pixels * channels + rays.channels
+        radiance = carry.radiance.at[index].add(contributions[:, 0])
+    else:
+        index = rays.pixels[:, None] * channels + jnp.arange(channels)
+        radiance = carry.radiance.at[index.ravel()].add(contributions.ravel())
+    alive = out.child_alive & rays.valid[:, None]  # [N, B]
+    weights = out.child_weights  # [N, B, K]
+    truncated = carry.truncated + jnp.where(
+        last, jnp.where(alive[..., None], weights, 0.0).sum() / k, 0.0)
+    keep = alive & (weights.max(axis=2) >= threshold) & ~last
+    dropped = carry.dropped + jnp.where(
+        last, 0.0, jnp.where((alive & ~keep)[..., None], weights, 0.0).sum() / k)
+    # Parent-major places in the next level (as np.nonzero on the host).
+    flat_keep = keep.reshape(-1)
+    place = jnp.cumsum(flat_keep, dtype=jnp.int32) - 1
+    fits = flat_keep & (place < next_capacity)
+    lost = jnp.where((flat_keep & ~fits)[:, None], weights.reshape(-1, k), 0.0).sum() / k
+    target = jnp.where(fits, place, next_capacity)  # out of range: dropped by the scatter
+    parent = jnp.repeat(jnp.arange(rays.valid.shape[0], dtype=jnp.int32), weights.shape[1])
+
+    def scatter(empty, values):
+        return empty.at[target].set(values, mode="drop")
+
+    nxt = _empty_level(next_capacity, k)
+    children = LevelRays(
+        origins=scatter(nxt.origins, out.child_origins.reshape(-1, 3)),
+        directions=scatter(nxt.directions, out.child_directions.reshape(-1, 3)),
+        weights=scatter(nxt.weights, weights.reshape(-1, k)),
+        pixels=scatter(nxt.pixels, rays.pixels[parent]),
+        channels=scatter(nxt.channels, rays.channels[parent]),
+        valid=scatter(nxt.valid, fits))
+    after = jnp.minimum(level + 1, carry.demand.shape[0] - 1)
+    demand = jnp.where(last, carry.demand,
+                       carry.demand.at[after].set(flat_keep.sum(dtype=jnp.int32)))
+    overflow = jnp.where(last, carry.overflow, carry.overflow.at[after].set(lost))
+    return _Carry(children, radiance, carry.traced.at[level].set(rays.valid.sum(dtype=jnp.int32)),
+                  demand, overflow, carry.shadow + out.shadow_rays, dropped, truncated)
+
+
 @functools.partial(jax.jit, static_argnames=("static", "capacities", "pixels", "channels"))
 def trace_tree(
     structure,
@@ -136,70 +204,28 @@ def trace_tree(
 ) -> tuple[Float[Array, "p c"], TreeStats]:
     """The whole tree, levels ``0..len(capacities)-1``, from the camera level: linear radiance
     ``[pixels, channels]`` (summed over the camera rays of a pixel; divide by spp) and the
-    :class:`TreeStats`. Pure: no host step between levels."""
-    spectral = static.features.dispersion
-    k = camera.weights.shape[1]
-    radiance = jnp.zeros((pixels * channels,), jnp.float32)
-    rays = camera
-    traced, demand, overflow = [], [], []
-    shadow = jnp.zeros((), jnp.int32)
-    dropped = jnp.zeros((), jnp.float32)
-    truncated = jnp.zeros((), jnp.float32)
+    :class:`TreeStats`. Pure: no host step between levels.
+
+    Level 0 holds ``capacities[0]`` rays; the later levels run in one loop (one compiled
+    body, whatever the depth) and all hold ``max(capacities[1:])``."""
     depth = len(capacities)
-    for level, capacity in enumerate(capacities):
-        assert rays.valid.shape[0] == capacity
-        out = _shade_level(structure, scene, rays, jax.random.fold_in(key, level), static)
-        traced.append(rays.valid.sum(dtype=jnp.int32))
-        shadow = shadow + out.shadow_rays
-        contributions = jnp.where(rays.valid[:, None], out.contributions, 0.0)
-        if spectral:
-            index = rays.pixels * channels + rays.channels
-            radiance = radiance.at[index].add(contributions[:, 0])
-        else:
-            index = rays.pixels[:, None] * channels + jnp.arange(channels)
-            radiance = radiance.at[index.ravel()].add(contributions.ravel())
-        alive = out.child_alive & rays.valid[:, None]  # [N, B]
-        weights = out.child_weights  # [N, B, K]
-        alive_weight = jnp.where(alive[..., None], weights, 0.0)
-        if level == depth - 1:  # past the maximum depth: black
-            truncated = truncated + alive_weight.sum() / k
-            break
-        keep = alive & (weights.max(axis=2) >= threshold)
-        dropped = dropped + jnp.where((alive & ~keep)[..., None], weights, 0.0).sum() / k
-        # Parent-major places in the next level (as np.nonzero on the host).
-        flat_keep = keep.reshape(-1)
-        place = jnp.cumsum(flat_keep, dtype=jnp.int32) - 1
-        needed = flat_keep.sum(dtype=jnp.int32)
-        next_capacity = capacities[level + 1]
-        fits = flat_keep & (place < next_capacity)
-        demand.append(needed)
-        overflow.append(jnp.where((flat_keep & ~fits)[:, None],
-                                  weights.reshape(-1, k), 0.0).sum() / k)
-        target = jnp.where(fits, place, next_capacity)  # out of range: dropped by the scatter
-        slots = weights.shape[1]
-        parent = jnp.repeat(jnp.arange(capacity, dtype=jnp.int32), slots)
-
-        def scatter(empty, values, target=target):
-            return empty.at[target].set(values, mode="drop")
-
-        nxt = _empty_level(next_capacity, k)
-        rays = LevelRays(
-            origins=scatter(nxt.origins, out.child_origins.reshape(-1, 3)),
-            directions=scatter(nxt.directions, out.child_directions.reshape(-1, 3)),
-            weights=scatter(nxt.weights, weights.reshape(-1, k)),
-            pixels=scatter(nxt.pixels, rays.pixels[parent]),
-            channels=scatter(nxt.channels, rays.channels[parent]),
-            valid=scatter(nxt.valid, fits))
-    count = len(traced)
-    zeros_i = [jnp.zeros((), jnp.int32)] * (depth - count)
-    stats = TreeStats(
-        rays=jnp.stack(traced + zeros_i),
-        demand=jnp.stack([traced[0]] + demand + [jnp.zeros((), jnp.int32)]
-                         * (depth - 1 - len(demand))),
-        overflow_weight=jnp.stack([jnp.zeros((), jnp.float32)] + overflow
-                                  + [jnp.zeros((), jnp.float32)] * (depth - 1 - len(overflow))),
-        shadow_rays=shadow, dropped_weight=dropped, truncated_weight=truncated)
-    return radiance.reshape(pixels, channels), stats
+    later = max(capacities[1:], default=_MIN_LATER)
+    zeros_i = jnp.zeros(depth, jnp.int32)
+    carry = _Carry(camera, jnp.zeros(pixels * channels, jnp.float32), zeros_i,
+                   zeros_i.at[0].set(camera.valid.sum(dtype=jnp.int32)),
+                   jnp.zeros(depth, jnp.float32), jnp.zeros((), jnp.int32),
+                   jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32))
+    step = functools.partial(_level_step, structure, scene, static=static,
+                             next_capacity=later, channels=channels, threshold=threshold,
+                             key=key)
+    carry = step(carry, 0, last=jnp.asarray(depth == 1))
+    if depth > 1:
+        carry = jax.lax.fori_loop(
+            1, depth, lambda level, c: step(c, level, last=level == depth - 1), carry)
+    stats = TreeStats(rays=carry.traced, demand=carry.demand, overflow_weight=carry.overflow,
+                      shadow_rays=carry.shadow, dropped_weight=carry.dropped,
+                      truncated_weight=carry.truncated)
+    return carry.radiance.reshape(pixels, channels), stats
 
 
 def _shade_level(structure, scene: SceneArrays, rays: LevelRays, key, static: _Static):
