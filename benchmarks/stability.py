@@ -1,4 +1,4 @@
-"""Numerical stability on stiff and extreme cases (issue 7): a suite that tries to break jrt.
+"""Numerical stability on stiff and extreme cases: a suite that tries to break jrt.
 
     python -m benchmarks.stability [-o stability.json] [--quick | --size SIZE] [--cases 1,2,...]
                                    [--structures brute,bvh,...] [--kernels watertight,...]
@@ -2505,7 +2505,7 @@ def run(cases=CASES, quick=False, kernels=None, structures=None, progress=False,
     pairs = None
     if kernels or structures:
         pairs = combos(kernels or KERNEL_NAMES, structures or STRUCTURES)
-    result = {"suite": "jrt numerical stability (issue 7)", "quick": quick, "size": size,
+    result = {"suite": "jrt numerical stability", "quick": quick, "size": size,
               "environment": {"python": platform.python_version(), "jax": jax.__version__,
                               "numpy": np.__version__, "machine": platform.machine(),
                               "cpu_count": os.cpu_count(), "devices": len(jax.devices()),
@@ -2549,7 +2549,7 @@ def _write(result: dict, output) -> Path:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.stability",
-        description="Numerical stability on stiff and extreme cases (issue 7): every case "
+        description="Numerical stability on stiff and extreme cases: every case "
                     "over kernel x structure pairs against a float64 oracle; JSON records "
                     "with findings.")
     parser.add_argument("-o", "--output", default="stability.json", help="JSON file to write")

@@ -1,4 +1,4 @@
-"""Work–precision runs of the Whitted renderer on the glass camel (issue 8): error against
+"""Work–precision runs of the Whitted renderer on the glass camel: error against
 run time, each point one measured render.
 
     python -m benchmarks.work_precision [-o work_precision.json] [--quick]

@@ -21,13 +21,11 @@ sky, channel tables: a few hundred bytes); the geometry leaves and the structure
 and every chunk, and the same program serves a turntable, a sweep or a set of bands of the
 same sizes.
 
-**The traversal is not vmapped.** Inside that function the two ray queries
-(:func:`jrt.closest_hit`, :func:`jrt.occluded`) get a ``custom_vmap`` rule that lays the
-items' rays end to end and traces them in *one* unbatched engine call (see
-:func:`_flat_query`): vmapping the engine's loop would turn its conditionals into selects
-that compute both sides (measured 10x slower). Every ray gets the same hit as in a single
-render, and ``jrt.whitted`` is left untouched (the level function is a copy with those two
-names rebound, :func:`_level_function`).
+**The traversal is not vmapped.** The two ray queries (:func:`jrt.closest_hit`,
+:func:`jrt.occluded`) batch natively (their ``custom_vmap`` rule in :mod:`jrt.trace` lays
+the items' rays end to end and traces them in *one* unbatched engine call): vmapping the
+engine's loop would turn its conditionals into selects that compute both sides (measured
+10x slower). Every ray gets the same hit as in a single render.
 
 **What may vary per item** (any combination, all of one length B):
 
@@ -80,7 +78,6 @@ import math
 import os
 import re
 import time
-import types
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -90,10 +87,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike, Float
 
-from jrt import trace as _trace
 from jrt import whitted
 from jrt.camera import Camera
-from jrt.kernels import DEFAULT_KERNEL
 from jrt.scene import CAUCHY_B_RANGE, INDEX_RANGE, Features, Material, Scene, load_scene
 from jrt.spectral import spectral_tables, spectrum_to_srgb
 from jrt.whitted import Rays, RenderSetup, SceneArrays
@@ -483,96 +478,10 @@ class BatchStats:
 _COMPILED: dict = {}
 
 
-def _flat_query(name: str, kernel: str):
-    """``jrt.trace.<name>`` (closest_hit or occluded) for ``structure, origins, directions,
-    tmax``, which under ``jax.vmap`` runs once on the items' rays laid end to end.
-
-    Why: vmapping the traversal engine itself turns its ``lax.cond`` s
-    (:func:`jrt.fusion.computed_once`: skip work no lane needs, materialise values once)
-    into selects that compute both sides and recompute them in every reader: measured 10x
-    slower than the unbatched engine on the glass camel. Rays are independent, so the
-    batch is better served as one long list of rays: ``custom_vmap`` flattens the item
-    axis into the ray axis, calls the unbatched query (the engine splits the rays over the
-    devices as for a single render) and gives the hits back per item. Each ray's hit is
-    the one the single render finds (the engine's answer does not depend on its
-    neighbours). The structure must be shared (unbatched).
-    """
-    query = getattr(_trace, name)
-
-    def call(structure, origins, directions, tmax):
-        return query(structure, origins, directions, tmax=tmax, kernel=kernel)
-
-    flat = jax.custom_batching.custom_vmap(call)
-
-    @flat.def_vmap
-    def _rule(axis_size, in_batched, structure, origins, directions, tmax):
-        if any(jax.tree.leaves(in_batched[0])):
-            raise ValueError("a batched render shares one structure; got a batched one")
-
-        def laid_out(x, batched):
-            x = x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
-            return x.reshape((-1, *x.shape[2:]))
-
-        rays = [laid_out(x, b) for x, b in zip((origins, directions, tmax), in_batched[1:],
-                                                strict=True)]
-        out = flat(structure, *rays)
-        out = jax.tree.map(lambda a: a.reshape((axis_size, -1, *a.shape[1:])), out)
-        return out, jax.tree.map(lambda _: True, out)
-
-    return flat
-
-
-_FLAT: dict = {}
-
-
-def _flat(name: str, kernel: str):
-    if (name, kernel) not in _FLAT:
-        _FLAT[name, kernel] = _flat_query(name, kernel)
-    return _FLAT[name, kernel]
-
-
-def _closest_hit(structure, origins, directions, *, tmax=None, kernel=DEFAULT_KERNEL,
-                 **options):
-    """:func:`jrt.closest_hit` as ``jrt.whitted`` calls it, batched by :func:`_flat_query`."""
-    if options:  # counters, lanes...: not used by the renderer; the plain query
-        return _trace.closest_hit(structure, origins, directions, tmax=tmax, kernel=kernel,
-                                  **options)
-    if tmax is None:
-        tmax = jnp.full(origins.shape[:-1], jnp.inf, jnp.float32)
-    return _flat("closest_hit", kernel)(structure, origins, directions, tmax)
-
-
-def _occluded(structure, origins, directions, *, tmax=None, kernel=DEFAULT_KERNEL, **options):
-    """:func:`jrt.occluded` as ``jrt.whitted`` calls it, batched by :func:`_flat_query`."""
-    if options:
-        return _trace.occluded(structure, origins, directions, tmax=tmax, kernel=kernel,
-                               **options)
-    if tmax is None:
-        tmax = jnp.full(origins.shape[:-1], jnp.inf, jnp.float32)
-    return _flat("occluded", kernel)(structure, origins, directions, tmax)
-
-
-def _level_function():
-    """``jrt.whitted._shade_chunk``'s Python function (un-jitted) with its two ray queries,
-    ``closest_hit`` and ``occluded``, resolved to the flattening versions above: a copy of
-    the function over a copy of its module's namespace, so ``jrt.whitted`` itself is left
-    as it is (and its single renders untouched)."""
-    fn = whitted._shade_chunk.__wrapped__
-    missing = {"closest_hit", "occluded"} - set(fn.__code__.co_names)
-    if missing:
-        raise RuntimeError(f"jrt.whitted._shade_chunk no longer calls {sorted(missing)} by "
-                           "name: update jrt.batch._level_function")
-    namespace = dict(fn.__globals__, closest_hit=_closest_hit, occluded=_occluded)
-    clone = types.FunctionType(fn.__code__, namespace, fn.__name__, fn.__defaults__,
-                               fn.__closure__)
-    clone.__kwdefaults__ = fn.__kwdefaults__
-    return clone
-
-
 def _batched_level(static, axes: SceneArrays):
     """The level function vmapped over items: per-item rays (axis 0) and the SceneArrays
     leaves marked 0 in ``axes``; the structure and the key shared."""
-    level = _level_function()
+    level = whitted._shade_chunk.__wrapped__  # un-jitted: the program is this one
 
     def one(structure, arrays, origins, directions, weights, channels, valid, key):
         return level(structure, arrays, origins, directions, weights, channels, valid, key,

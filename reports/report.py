@@ -58,7 +58,7 @@ from pathlib import Path
 #: The commands that produce each kind of results (shown when a file does not record its own).
 BENCH_COMMAND = "python -m benchmarks"
 STABILITY_COMMAND = "python -m benchmarks.stability"
-#: The runs of issue 8's work–precision diagrams (triangle kernel x float32/float64, Whitted
+#: The runs of the work–precision diagrams (triangle kernel x float32/float64, Whitted
 #: depth, wavelength samples, pruning threshold, exact tree versus sampled branches, Fresnel
 #: exact versus Schlick) write records of kind "work_precision"; ``jrt study`` runs them.
 WORK_PRECISION_COMMAND = "jrt study"

@@ -1,4 +1,4 @@
-"""The numerical-stability suite (``benchmarks/stability.py``, issue 7) at CI sizes.
+"""The numerical-stability suite (``benchmarks/stability.py``) at CI sizes.
 
 Every case that should pass runs here, small: the suite's own case functions with small
 parameters, and assertions on their records. What is known not to hold yet is an xfail
