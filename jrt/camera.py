@@ -63,8 +63,35 @@ class Camera:
         return int(self.width) * int(self.height)
 
 
+def subpixel_offsets(spp: int) -> np.ndarray:
+    """float32 [spp, 2]: stratified positions (x right, y down) in the unit pixel, the
+    Hammersley points ``((i + 1/2) / spp, φ2(i) + 1/(2 spp) mod 1)`` with ``φ2`` the base-2
+    radical inverse (Hammersley & Handscomb, *Monte Carlo Methods*, 1964; pbrt-v4 §8.6.2).
+    Every column of width 1/spp holds one point, and for spp a power of two so does every
+    row, and every cell of any power-of-two grid of spp cells (a (0, m, 2)-net): anti-aliasing
+    whose error falls faster than random jitter's. One sample is the pixel centre."""
+    if isinstance(spp, bool) or not isinstance(spp, int | np.integer) or spp < 1:
+        raise ValueError(f"spp must be a positive integer, got {spp!r}")
+    i = np.arange(spp, dtype=np.uint64)
+    radical = np.zeros(spp, np.float64)
+    scale, bits = 0.5, i.copy()
+    while bits.any():
+        radical += (bits & np.uint64(1)).astype(np.float64) * scale
+        bits >>= np.uint64(1)
+        scale /= 2
+    x = (np.arange(spp) + 0.5) / spp
+    y = (radical + 0.5 / spp) % 1.0
+    return np.stack([x, y], axis=1).astype(np.float32)
+
+
 @functools.partial(jax.jit, static_argnames=("width", "height"))
-def _pinhole(eye, target, up, vfov_radians, width: int, height: int):
+def _pinhole(eye, target, up, vfov, width: int, height: int, offsets=None):
+    """Rays through ``offsets`` [S, 2] of every pixel (default its centre), pixel-major:
+    [H * W * S, 3]. ``vfov`` in degrees, float32: every caller (the host's camera, the
+    renderer's parameters) goes through the same float32 operations, so the rays agree
+    bit for bit (a glass tree magnifies a one-ulp change of a camera ray)."""
+    vfov_radians = vfov * jnp.float32(math.pi / 180)
+    offsets = jnp.full((1, 2), 0.5, jnp.float32) if offsets is None else offsets
     forward = target - eye
     forward = forward / jnp.sqrt(dot(forward, forward))
     right = cross(forward, up)
@@ -72,24 +99,28 @@ def _pinhole(eye, target, up, vfov_radians, width: int, height: int):
     true_up = cross(right, forward)
     half_h = jnp.tan(vfov_radians / 2)
     half_w = half_h * (width / height)
-    # Pixel centres; row 0 is the top of the image.
-    x = ((jnp.arange(width, dtype=jnp.float32) + 0.5) / width * 2 - 1) * half_w
-    y = (1 - (jnp.arange(height, dtype=jnp.float32) + 0.5) / height * 2) * half_h
+    # Positions in the pixels; row 0 is the top of the image.
+    x = ((jnp.arange(width, dtype=jnp.float32)[:, None] + offsets[:, 0]) / width * 2 - 1) * half_w
+    y = (1 - (jnp.arange(height, dtype=jnp.float32)[:, None] + offsets[:, 1]) / height * 2
+         ) * half_h  # [H, S]
     d = (
-        forward[None, None, :]
-        + x[None, :, None] * right[None, None, :]
-        + y[:, None, None] * true_up[None, None, :]
+        forward[None, None, None, :]
+        + x[None, :, :, None] * right[None, None, None, :]
+        + y[:, None, :, None] * true_up[None, None, None, :]
     ).reshape(-1, 3)
     d = d / jnp.sqrt(dot(d, d))[:, None]
     return jnp.broadcast_to(eye, d.shape), d
 
 
-def camera_rays(camera: Camera) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
-    """Origins and unit directions, float32 [height * width, 3], row-major from the top left."""
+def camera_rays(camera: Camera, spp: int = 1) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
+    """Origins and unit directions, float32 [height * width * spp, 3], row-major from the
+    top left: one ray through each pixel's centre, or ``spp`` through its
+    :func:`subpixel_offsets`, pixel by pixel."""
     f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
     return _pinhole(
-        f32(camera.eye), f32(camera.target), f32(camera.up), f32(math.radians(camera.vfov)),
+        f32(camera.eye), f32(camera.target), f32(camera.up), f32(camera.vfov),
         width=int(camera.width), height=int(camera.height),
+        offsets=None if spp == 1 else jnp.asarray(subpixel_offsets(spp)),
     )
 
 

@@ -317,10 +317,11 @@ def _flat_query(kernel, any_hit, counters, lanes, stack_size):
 
 
 def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, lanes,
-           stack_size):
+           stack_size, status_out=False):
     """What :func:`closest_hit` and :func:`occluded` share: checks, size bucket, the
     engine or brute force, the answers of the real rays. Returns (hits, counters or
-    None)."""
+    None), and with ``status_out`` the engine's status word instead of raising on it
+    (:func:`query_status`)."""
     _check_structure(structure)
     get_kernel(kernel)
     is_brute = structure.kind == "brute"
@@ -346,13 +347,35 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
         out, count, status = _flat_query(**options)(structure, origins, directions, tmax)
     else:
         out, count, status = _core(structure, origins, directions, tmax, **options)
-    if not is_brute:
+    if not is_brute and not status_out:
         _raise_on_status(status, stack_size, rays)
     if size != n:
         out, count = _first((out, count), n)
     if count is not None:
         count = Counters(steps=count[:, 0], tests=count[:, 1], leaves=count[:, 2])
-    return out, count
+    return (out, count, status) if status_out else (out, count)
+
+
+def query_status(structure: Structure, origins: Float[Array, "n 3"],
+                 directions: Float[Array, "n 3"], *, tmax, kernel: str, any_hit: bool,
+                 stack_size: int = engine.DEFAULT_STACK_SIZE):
+    """:func:`closest_hit` (or :func:`occluded` with ``any_hit``) that hands the engine's
+    status word back, an int32 scalar of ``jrt.engine.STATUS_*`` bits, instead of raising
+    on it. For a program that runs many queries under one ``jit`` (the renderer): it ORs
+    the words and raises once, outside, with :func:`raise_on_status`. No host callback
+    sits in its program, so JAX's persistent compilation cache can keep it (a program
+    with a callback is never cached)."""
+    out, _, status = _query(structure, origins, directions, tmax, kernel=kernel,
+                            any_hit=any_hit, counters=False, lanes=None,
+                            stack_size=stack_size, status_out=True)
+    return out, status
+
+
+def raise_on_status(status, stack_size: int = engine.DEFAULT_STACK_SIZE) -> None:
+    """Raise :class:`StackOverflowError` or :class:`jrt.engine.TraversalError` for a
+    concrete status word from :func:`query_status` (bad rays trace as misses there, as
+    inside any ``jit``)."""
+    _status_callback(int(status), stack_size=stack_size)
 
 
 def closest_hit(
