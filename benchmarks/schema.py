@@ -32,8 +32,8 @@ with one record per measurement, told apart by ``kind``:
   the per-pixel counters of the camera rays, averaged over ``block``² pixel squares
   (row-major, ``height`` rows of ``width`` cells);
 - ``turntable``: scene, mesh, frames, width, height, samples, max_depth,
-  batched_images_per_s, loop_images_per_s, loop_same_chunk_images_per_s, ratio (batched
-  over the faster loop), batch_devices, max_abs_difference (batch against the same-chunk
+  batched_images_per_s, loop_images_per_s, loop_same_capacities_images_per_s, ratio (batched
+  over the faster loop), batch_devices, max_abs_difference (batch against the same-capacities
   loop, radiance), peak_radiance.
 """
 
@@ -143,7 +143,7 @@ DEFS = {
         "kind": {"const": "turntable"}, "scene": _STR, "mesh": _STR, "frames": _POS_COUNT,
         "width": _POS_COUNT, "height": _POS_COUNT, "samples": _POS_COUNT,
         "max_depth": _POS_COUNT, "batched_images_per_s": _POS, "loop_images_per_s": _POS,
-        "loop_same_chunk_images_per_s": _POS, "ratio": _POS, "batch_devices": _POS_COUNT,
+        "loop_same_capacities_images_per_s": _POS, "ratio": _POS, "batch_devices": _POS_COUNT,
         "max_abs_difference": _NONNEG, "peak_radiance": _NONNEG}),
 }
 

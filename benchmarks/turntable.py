@@ -1,5 +1,6 @@
-"""Images per second of a turntable of the glass camel: one batched render (jrt.batch)
-against a Python loop of single renders (jrt.whitted).
+"""Images per second of a turntable of the glass camel: one batched render (jrt.batch,
+``jax.vmap`` of the pure renderer) against a Python loop of single renders
+(jrt.wavefront).
 
     python -m benchmarks.turntable [-o turntable.json] [--quick] [--frames N]
                                    [--width W --height H] [--samples S] [--depth D]
@@ -10,20 +11,20 @@ The scene is the built-in ``glass-camel`` (its mesh swapped to ``--mesh``, by de
 :func:`jrt.batch.turntable` (N frames, 360/N degrees apart about +y, around the scene's
 automatic framing, :func:`jrt.camera.frame_mesh`, which fits the camel's bounding sphere:
 every frame shows the whole camel). Three ways to render the same N frames, each timed
-after a warm-up of the same shapes at depth 1 (compiling left out and recorded apart), best
-of ``--repeats``:
+after a warm-up pass over the same frames (compiling, and growing the level capacities,
+left out and recorded apart), best of ``--repeats``:
 
 * ``batched``: :func:`jrt.batch.render_batch` over the N cameras (its own memory plan);
-* ``loop``: N calls of :func:`jrt.whitted.render_radiance`, the library's default chunk
-  (:data:`jrt.whitted.CHUNK` rays a call, padded);
-* ``loop_same_chunk``: the same loop with the batch's chunk (less padding for small
-  images: the fairer baseline when the default chunk is much larger than a level).
+* ``loop``: one :func:`jrt.wavefront.renderer` called N times, each frame's camera written
+  into its parameters (the renderer's own capacities, grown in the warm-up);
+* ``loop_same_capacities``: the same loop with a renderer made at the batch's level capacities
+  (each frame the very program the batch vmaps: the fairer baseline).
 
 ``ratio`` is the batch's images/s over the faster loop's. The batch's images are checked
-against the loop's (``max_abs_difference``, radiance; 0 expected with the same chunk).
+against the loops' (``max_abs_difference``, radiance; float32 rounding at most).
 Output: ``{"kind": "turntable", "machine", "parameters", "batched", "loop",
-"loop_same_chunk", "ratio", "max_abs_difference", "notes"}``, each timing with
-``seconds``, ``images_per_second``, ``compile_seconds``, ``rays``.
+"loop_same_capacities", "ratio", "max_abs_difference", "notes"}``, each timing with
+``seconds``, ``images_per_second``, ``compile_seconds``, ``rays``, ``capacities``.
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def _timed(fn, repeats: int):
 def run(*, quick=False, frames=None, width=None, height=None, samples=None, depth=None,
         mesh="camel-19k", repeats=1, command=PROG) -> dict:
     """The three timings; returns the JSON document."""
-    from jrt import batch, whitted
+    from jrt import batch, wavefront, whitted
 
     q = int(bool(quick))
     frames = FRAMES[q] if frames is None else int(frames)
@@ -112,33 +113,37 @@ def run(*, quick=False, frames=None, width=None, height=None, samples=None, dept
     setup = whitted.prepare(glass_camel(mesh), samples=samples)
     prepare_seconds = time.perf_counter() - start
     cameras = batch.turntable(setup, frames, width=width, height=height)
-    singles = [batch.with_camera(setup, c) for c in cameras]
 
-    # Batched: warm-up (compile) at depth 1, then the timed runs.
-    _, warm = batch.render_batch(setup, cameras=cameras, max_depth=1)
+    # Batched: a warm-up pass (compile, capacities), then the timed runs.
+    _, warm = batch.render_batch(setup, cameras=cameras, max_depth=depth)
     (images, stats), seconds = _timed(
         lambda: batch.render_batch(setup, cameras=cameras, max_depth=depth), repeats)
     batched = {"seconds": seconds, "images_per_second": frames / seconds,
                "compile_seconds": warm.compile_seconds + stats.compile_seconds,
                "rays": stats.total_rays, "items_per_call": stats.items_per_call,
-               "chunk": stats.chunk, "calls": stats.calls, "devices": stats.devices,
-               "memory_budget": stats.memory_budget, "call_bytes": stats.call_bytes}
+               "capacities": list(stats.capacities), "calls": stats.calls,
+               "devices": stats.devices, "memory_budget": stats.memory_budget,
+               "call_bytes": stats.call_bytes}
 
-    def loop(chunk):
-        _, w = whitted.render_radiance(singles[0], max_depth=1, chunk=chunk)
+    def loop(capacities):
+        render, params = wavefront.renderer(setup, width=width, height=height,
+                                            max_depth=depth, capacities=capacities)
+        frame_params = [{**params, "camera": batch.camera_parameters(c)} for c in cameras]
 
         def all_frames():
-            return [whitted.render_radiance(s, max_depth=depth, chunk=chunk) for s in singles]
+            return [(np.asarray(render(p), np.float64), render.last_stats)
+                    for p in frame_params]
 
+        warmup = all_frames()
         out, secs = _timed(all_frames, repeats)
         record = {"seconds": secs, "images_per_second": frames / secs,
-                  "compile_seconds": w.compile_seconds + sum(st.compile_seconds
-                                                             for _, st in out),
-                  "rays": sum(st.total_rays for _, st in out), "chunk": chunk}
+                  "compile_seconds": sum(st.compile_seconds for _, st in warmup + out),
+                  "rays": sum(st.total_rays for _, st in out),
+                  "capacities": list(render.capacities)}
         return np.stack([r for r, _ in out]), record
 
-    loop_images, looped = loop(whitted.CHUNK)
-    same_images, same = loop(stats.chunk)
+    loop_images, looped = loop(None)
+    same_images, same = loop(stats.capacities)
     best = max(looped["images_per_second"], same["images_per_second"])
     return {
         "kind": "turntable",
@@ -149,22 +154,23 @@ def run(*, quick=False, frames=None, width=None, height=None, samples=None, dept
                        "triangles": int(setup.geometry.faces.shape[0]),
                        "prepare_seconds": prepare_seconds, "command": command,
                        "timing": "wall time of the whole turntable (radiance, no encoding) "
-                                 "after a depth-1 warm-up of the same shapes; best of "
+                                 "after a warm-up pass over the same frames; best of "
                                  "repeats"},
         "batched": batched,
         "loop": looped,
-        "loop_same_chunk": same,
+        "loop_same_capacities": same,
         "ratio": batched["images_per_second"] / best,
         "max_abs_difference": {
             "loop": float(np.abs(images - loop_images).max()),
-            "loop_same_chunk": float(np.abs(images - same_images).max()),
+            "loop_same_capacities": float(np.abs(images - same_images).max()),
             "peak_radiance": float(np.abs(loop_images).max())},
         "notes": [
             "ratio: batched images/s over the faster of the two loops.",
-            "The loop with the default chunk pads every level to jrt.whitted.CHUNK rays; "
-            "loop_same_chunk uses the batch's chunk, sized to a level-0 image.",
-            "A nonzero difference against the default-chunk loop is float32 rounding: XLA "
-            "compiles the level function for another shape (see jrt.batch's tests).",
+            "loop: one jrt.wavefront renderer at its own capacities; loop_same_capacities: a "
+            "renderer at the batch's level capacities, each frame the program the batch "
+            "vmaps.",
+            "A nonzero difference is float32 rounding: XLA compiles the vmapped program "
+            "differently (see jrt.batch's tests).",
         ],
     }
 
@@ -181,13 +187,13 @@ def main(argv=None) -> int:
     p = doc["parameters"]
     print(f"{p['frames']} frames {p['width']}x{p['height']}, {p['samples']} samples, depth "
           f"{p['max_depth']}, {p['triangles']:,} triangles")
-    for name in ("batched", "loop", "loop_same_chunk"):
+    for name in ("batched", "loop", "loop_same_capacities"):
         r = doc[name]
         print(f"{name:16s} {r['seconds']:8.2f} s  {r['images_per_second']:7.3f} images/s  "
-              f"(chunk {r['chunk']:,}, compile {r['compile_seconds']:.2f} s)")
+              f"(capacities {r['capacities']}, compile {r['compile_seconds']:.2f} s)")
     print(f"ratio {doc['ratio']:.2f}x; max |batched - loop| "
-          f"{doc['max_abs_difference']['loop_same_chunk']:.3g} (same chunk), "
-          f"{doc['max_abs_difference']['loop']:.3g} (default chunk) -> {out} "
+          f"{doc['max_abs_difference']['loop_same_capacities']:.3g} (same capacities), "
+          f"{doc['max_abs_difference']['loop']:.3g} (own capacities) -> {out} "
           f"({p['total_seconds']:.1f} s)")
     return 0
 

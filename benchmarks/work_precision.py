@@ -9,7 +9,7 @@ default the 19k-triangle camel to keep the run short) with one setting changed, 
 it with a reference render: depth 10, many wavelength samples (32 with ``--quick``, 64
 otherwise), no pruning (threshold 0), exact Fresnel, the watertight kernel. The run time is
 the wall time of :func:`jrt.whitted.render_scene` (radiance and sRGB encoding) after a
-warm-up render of the same shapes (same size, samples, mode, spp, kernel and Fresnel, depth 1),
+warm-up render of the same shapes (same size, samples, mode, spp, kernel and Fresnel and depth),
 so compiling is left out; the compile time of the warm-up is recorded apart
 (``compile_seconds``). The error is measured on the encoded sRGB images: PSNR and SSIM by
 scikit-image (``data_range=1``, ``channel_axis=-1``) and the mean CIEDE2000 ΔE by
@@ -56,7 +56,7 @@ KERNELS = ("plane_barycentric", "moller_trumbore", "watertight")
 
 #: (full, quick) values of each study.
 DEPTHS = ((1, 2, 3, 4, 5, 6, 7, 8), (1, 2, 4))
-SAMPLES = ((4, 8, 16, 32), (4, 8, 16))
+SAMPLES = ((4, 8, 16, 32), (4, 16))
 THRESHOLDS = ((1e-1, 1e-2, 1e-3, 1e-4), (1e-1, 1e-3))
 SPPS = ((1, 4, 16), (1, 4))
 REFERENCE_SAMPLES = (64, 32)
@@ -73,8 +73,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=None, help="image height (96; quick 48)")
     p.add_argument("--mesh", choices=("camel", "camel-19k"), default="camel-19k",
                    help="the camel mesh of the glass camel (default camel-19k)")
-    p.add_argument("--chunk", type=int, default=None,
-                   help="rays per call of the compiled level function (default jrt's CHUNK)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm progress bar")
     return p
 
@@ -120,16 +118,17 @@ def with_settings(setup, **changes):
 
 
 def measured_render(setup, *, width, height, max_depth, samples, threshold, mode="tree",
-                    spp=1, chunk=None):
-    """(sRGB image, stats, warm-up compile seconds): a warm-up render of the same shapes at
-    depth 1, then the measured one."""
+                    spp=1):
+    """(sRGB image, stats, warm-up compile seconds): a warm-up render of the same shapes,
+    then the measured one."""
     import jax
 
     from jrt import whitted
 
     kw = dict(width=width, height=height, samples=samples, mode=mode, spp=spp,
-              key=jax.random.PRNGKey(0), chunk=whitted.CHUNK if chunk is None else int(chunk))
-    _, warm = whitted.render_scene(setup, max_depth=1, threshold=threshold, **kw)
+              key=jax.random.PRNGKey(0))
+    # The same render first: it compiles the program and sizes the tree's levels.
+    _, warm = whitted.render_scene(setup, max_depth=max_depth, threshold=threshold, **kw)
     image, stats = whitted.render_scene(setup, max_depth=max_depth, threshold=threshold, **kw)
     return image, stats, warm.compile_seconds + stats.compile_seconds
 
@@ -182,7 +181,7 @@ def machine_record() -> dict:
 
 
 def run(*, quick=False, width=None, height=None, mesh="camel-19k", command=PROG,
-        progress=True, points=None, chunk=None, reference_samples=None,
+        progress=True, points=None, reference_samples=None,
         reference_depth=REFERENCE_DEPTH) -> dict:
     """All the studies; returns the JSON document. ``points`` overrides :func:`plan`;
     ``reference_samples`` the reference's wavelength samples (64; quick 32)."""
@@ -199,7 +198,6 @@ def run(*, quick=False, width=None, height=None, mesh="camel-19k", command=PROG,
     setup = whitted.prepare(scene)
     prepare_seconds = time.perf_counter() - start
     points = plan(quick, settings) if points is None else points
-    chunk = whitted.CHUNK if chunk is None else int(chunk)
     ref_samples = REFERENCE_SAMPLES[q] if reference_samples is None else int(reference_samples)
 
     ref_settings = dict(max_depth=reference_depth, samples=ref_samples, threshold=0.0,
@@ -210,7 +208,7 @@ def run(*, quick=False, width=None, height=None, mesh="camel-19k", command=PROG,
     ref_setup = with_settings(setup, fresnel="exact", kernel="watertight")
     reference, ref_stats, ref_compile = measured_render(
         ref_setup, width=width, height=height, max_depth=reference_depth,
-        samples=ref_samples, threshold=0.0, chunk=chunk)
+        samples=ref_samples, threshold=0.0)
     bar.update()
     records = []
     for p in points:
@@ -218,7 +216,7 @@ def run(*, quick=False, width=None, height=None, mesh="camel-19k", command=PROG,
         s = with_settings(setup, fresnel=p["fresnel"], kernel=p["kernel"])
         image, stats, compile_seconds = measured_render(
             s, width=width, height=height, max_depth=p["max_depth"], samples=p["samples"],
-            threshold=p["threshold"], mode=p["mode"], spp=p["spp"], chunk=chunk)
+            threshold=p["threshold"], mode=p["mode"], spp=p["spp"])
         m = metrics(image, reference)
         record = {"kind": "work_precision", "study": p["study"], "series": p["series"],
                   "method": p["method"], "seconds": stats.seconds,
@@ -236,7 +234,7 @@ def run(*, quick=False, width=None, height=None, mesh="camel-19k", command=PROG,
         "kind": "work_precision",
         "machine": machine_record(),
         "parameters": {"scene": SCENE, "mesh": mesh, "width": width, "height": height,
-                       "quick": bool(quick), "chunk": chunk,
+                       "quick": bool(quick),
                        "triangles": int(setup.geometry.faces.shape[0]),
                        "accel": settings.accel, "background": settings.background,
                        "defaults": dataclasses.asdict(settings),
@@ -262,10 +260,9 @@ def run(*, quick=False, width=None, height=None, mesh="camel-19k", command=PROG,
             f"{settings.max_depth}, {settings.samples} samples, threshold "
             f"{settings.threshold:g}, {settings.fresnel} Fresnel, {settings.kernel} kernel); "
             "the depth and threshold studies therefore level off at the error of 16 samples.",
-            f"Each level is traced in padded chunks of {chunk:,} rays: when a level holds "
-            "fewer rays than a chunk (small images, few samples, deep levels) the padding "
-            "costs about as much as real rays, so run times flatten at small workloads "
-            "(see --chunk).",
+            "Every level of a render runs in one compiled program (jrt.wavefront); a "
+            "level's capacity is rounded up to a size bucket, and its chunks of 32,768 rays "
+            "past the live rays are skipped, so run times flatten at small workloads.",
             "Sampled branches use jax.random.PRNGKey(0), all paths through the pixel centre.",
         ],
     }
@@ -276,7 +273,7 @@ def main(argv=None) -> int:
     command = command_line(PROG, argv)
     start = time.perf_counter()
     doc = run(quick=args.quick, width=args.width, height=args.height, mesh=args.mesh,
-              command=command, progress=not args.no_progress, chunk=args.chunk)
+              command=command, progress=not args.no_progress)
     doc["parameters"]["total_seconds"] = time.perf_counter() - start
     out = write_record(doc, args.output)
     ref = doc["reference"]

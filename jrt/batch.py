@@ -1,5 +1,5 @@
-"""Batched renders: many images of one scene in one compiled program (``jax.vmap``), in
-chunks sized to the memory at hand, the batch split over every local device.
+"""Batched renders: many images of one scene in one compiled program, ``jax.vmap`` of the
+pure Whitted renderer, the batch split over every local device.
 
     setup = prepare(load_scene("glass-camel"))
     images, stats = render_batch(setup, cameras=turntable(setup, 36, width=320, height=240))
@@ -8,67 +8,46 @@ chunks sized to the memory at hand, the batch split over every local device.
     radiance, stats = render_batch(setup, bands=[[400, 500], [500, 600], [600, 700]])
     srgb = batch_to_srgb(radiance, setup)                         # [B, H, W, 3]
 
-**Why batch.** A turntable, a sweep of the glass's Cauchy B or a set of wavelength bands are
-many renders of the *same geometry and structure* whose inputs differ only in small arrays:
-the camera rays, a few material numbers, the channel tables. Rendering them one by one pays
-per-call and per-level costs (dispatch, padding, host work, and the engine's loop, some 80
-XLA kernels per iteration whatever the lane count) once per image. Here every batch item is
-an axis of one ``jax.vmap`` of the renderer's level function (:func:`jrt.whitted._shade_chunk`,
-its Python function under ``__wrapped__``): item ``b`` of a call shades chunk ``j`` of its
-own level's rays with its own :class:`jrt.whitted.SceneArrays` leaves (materials, lamps,
-sky, channel tables: a few hundred bytes); the geometry leaves and the structure are shared
-(``in_axes=None``) and stored once. One compiled program serves the whole batch, every level
-and every chunk, and the same program serves a turntable, a sweep or a set of bands of the
-same sizes.
+A turntable, a material sweep and a set of wavelength bands are renders of the *same
+geometry and structure* whose inputs differ in small arrays. :func:`jrt.wavefront.renderer`
+renders a scene as a pure function of its parameters (:func:`jrt.params.scene_parameters`:
+camera, material values, lamps, ambient) and its :class:`jrt.params.SceneConstants`
+(geometry, channel tables, lamp spectra, sky). :func:`render_batch` stacks the items'
+parameter pytrees and the per-item constants (tables, lamp spectra, sky: a few hundred
+bytes; the geometry and the structure are shared, ``in_axes=None``) and calls
+``jax.vmap`` of the renderer's tree program (:func:`jrt.wavefront._tree_program`), every
+level of every item in one call. Every leaf is stacked whether it varies or not, so a
+turntable, a sweep and a set of bands of the same sizes share one compiled program. The
+ray queries are not vmapped into selects: their ``custom_vmap`` rule (:mod:`jrt.trace`)
+traces all items' rays end to end in one engine call.
 
-**The traversal is not vmapped.** The two ray queries (:func:`jrt.closest_hit`,
-:func:`jrt.occluded`) batch natively (their ``custom_vmap`` rule in :mod:`jrt.trace` lays
-the items' rays end to end and traces them in *one* unbatched engine call): vmapping the
-engine's loop would turn its conditionals into selects that compute both sides (measured
-10x slower). Every ray gets the same hit as in a single render.
+What may vary per item (any combination, all of one length B): ``cameras`` of one image
+size (:func:`turntable`), written into ``params["camera"]``; ``scenes``, variants of the
+setup's scene in material values or the ambient share (:func:`sweep_scenes`), written
+into a copy of the setup's parameters (:func:`variant_parameters`: nothing is prepared or
+built per item; what decides the geometry or the compiled program may not change);
+``bands``, wavelength bands ``[lo, hi]`` nm with the setup's sample count, each item's
+constants those of :func:`band_setup`.
 
-**What may vary per item** (any combination, all of one length B):
+**Each item is its single render**, ``wavefront.renderer(...)`` called with the item's
+parameters: its camera rays come from the single renderer's own
+:func:`jrt.wavefront._camera_rays` call (the same bits: in a glass tree an ulp of a camera
+ray can become another path), and the tree is the same function, vmapped (the tests check
+each item to float32 rounding). A group runs at the level capacities of the setup's
+cached renderer (:func:`jrt.wavefront.cached_renderer`); when an item's ``demand``
+exceeds them, the capacities grow to the group's largest demand
+(:func:`jrt.wavefront.grown_capacities`, kept by the renderer) and the group renders
+again; a traversal failure raises (:func:`jrt.trace.raise_on_status`).
 
-* ``cameras``: :class:`jrt.Camera` s of one image size (e.g. :func:`turntable`);
-* ``scenes``: variants of the setup's scene that differ in material parameters (e.g.
-  :func:`sweep_scenes`: a glass's index or Cauchy A, B, a diffuse albedo, a mirror's
-  reflectance) or the ambient share: same objects, floor, lamps, material names and kinds,
-  kernel, background and Fresnel model (those decide the geometry and what is compiled);
-* ``bands``: wavelength bands ``[lo, hi]`` nm (spectral scenes): item ``b`` samples its own
-  band with the setup's sample count (:func:`band_setup` gives the equal single render).
-
-Each item is exactly the render :func:`jrt.whitted.render_radiance` gives for that camera,
-scene and tables (tree mode): the host side of a level (accumulation by pixel, children in
-parent order, pruning by weight, the depth cut) is the same code path item by item, and the
-device side the same function, vmapped. The tests check equality with a Python loop of
-single renders to float32 rounding, 1e-5 of the peak (at the same chunk size: XLA compiles
-the level function for a different shape, and for very small ones, 128 rays a device,
-float32 rounding in the shading can differ by a few ulps, in single renders as much as
-here; on an AVX2 host 2 of 1,728 values of a test frame moved by 1e-6 of the peak).
-
-**Memory stays bounded.** A call holds ``items × chunk`` rays; both come from a byte budget
-(:func:`memory_budget`: a share of the free memory of the accelerators where
-``device.memory_stats()`` reports it, and of the host's available RAM), see
-:func:`plan_batch`: first as many items per call as fit (all of them when they do) with a
-chunk as large as a level-0 image (at most :data:`jrt.whitted.CHUNK`), then, when that does
-not fit, smaller chunks down to :data:`MIN_CHUNK`. After compiling, the program's own
-``memory_analysis()`` is checked against the budget and the chunk halved while it is over.
-Items are rendered in groups of ``items`` (all their levels, then the next group), so the
-host holds the rays of one group only: the batch size never decides whether a render fits,
-only how many calls it takes.
-
-**Devices.** The items of a call are split over ``jax.local_devices()`` with a
-:class:`jax.sharding.Mesh` (axis ``"batch"``) and :class:`jax.sharding.NamedSharding`:
-batched inputs, the shading and every output are sharded along the batch axis, the shared
-arrays replicated; a group is padded with empty items (all rays padding) to a multiple of
-the device count. One code path for one device or many. The traversal inside splits the
-call's rays (all items') over the same devices with the engine's own ``shard_map``, as for a
-single render; XLA moves the rays between the two layouts. Beyond one machine, see
-:func:`process_items` and the README: each process of a ``jax.distributed`` job renders its
-share of the batch on its own devices.
-
-Only the tree mode is batched: the sampled mode's random branches depend on the chunk
-layout, so a batch could not equal the single renders.
+**Memory and devices.** :func:`plan_batch` sizes a group from a byte budget
+(:func:`memory_budget`: shares of the host's available RAM and of the accelerators' free
+memory); the compiled program's ``memory_analysis()`` is checked against it and the group
+halved while over, so the batch size decides how many calls a batch takes, never whether
+it fits. A group's stacked inputs and outputs are split over ``jax.local_devices()``
+along a ``"batch"`` :class:`jax.sharding.Mesh` axis (:class:`jax.sharding.NamedSharding`),
+the shared arrays replicated; a group is padded to its size (a multiple of the device
+count) with copies of its first item, dropped after. Beyond one machine see
+:func:`process_items`. Only the tree mode is batched.
 """
 
 from __future__ import annotations
@@ -87,30 +66,27 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike, Float
 
-from jrt import whitted
+from jrt import wavefront, whitted
 from jrt.camera import Camera
+from jrt.params import SceneConstants, scene_constants
 from jrt.scene import CAUCHY_B_RANGE, INDEX_RANGE, Features, Material, Scene, load_scene
 from jrt.spectral import spectral_tables, spectrum_to_srgb
-from jrt.whitted import Rays, RenderSetup, SceneArrays
+from jrt.trace import raise_on_status
+from jrt.whitted import RenderSetup
 
-#: The smallest chunk (rays per item and call): below it a call is all overhead.
-MIN_CHUNK = 256
-#: Device bytes per ray of a call, an upper bound. ``memory_analysis()`` of the batched
-#: level function (glass and diffuse camels, one lamp, 2 XLA:CPU devices, jax 0.10.2)
-#: measured 240-250 B/ray of temporaries and outputs past a fixed part, and 40 B/ray of
-#: inputs; about three times that covers other scenes and backends (and the compiled
-#: program's own figure is checked against the budget after compiling).
+#: Device bytes per ray slot of an item (its level-0 plus a later level's capacity), an
+#: upper bound. ``memory_analysis()`` of the vmapped tree program (glass camel, one lamp,
+#: 4 wavelength samples, 2 XLA:CPU devices, jax 0.10.2) measured 300-750 B a slot past a
+#: fixed 2 MB; the compiled program's own figure is checked against the budget after
+#: compiling.
 RAY_BYTES = 1024
-#: Extra device bytes per ray and lamp (the [N, L, 3] shadow-ray arrays).
+#: Extra device bytes per ray slot and lamp (the shadow rays).
 LAMP_RAY_BYTES = 128
-#: Device bytes of a call besides its rays: the traversal engine's persistent lanes and
-#: their stacks (measured 4.6 MB with 2 devices of 2048 lanes each), with room for more.
+#: Device bytes of a call besides its items: the engine's lanes and stacks, the geometry.
 CALL_BYTES = 16 << 20
-#: Host bytes per camera ray of an item held during its render (each level's rays, the
-#: level's outputs, children before pruning, the radiance in float64).
-HOST_RAY_BYTES = 256
-#: Shares of the free memory a batch may plan for: of the host's RAM (CPU backend, and the
-#: host side of any backend) and of the accelerators' memory.
+#: Host bytes per pixel and channel of an item (the float32 result and its float64 copy).
+HOST_PIXEL_BYTES = 12
+#: Shares of the free memory a batch may plan for: the host's RAM, the accelerators'.
 HOST_FRACTION = 0.25
 DEVICE_FRACTION = 0.5
 
@@ -118,6 +94,12 @@ DEVICE_FRACTION = 0.5
 SWEEP_FIELDS = {"dielectric": ("index", "A", "B"), "diffuse": ("albedo",),
                 "mirror": ("reflectance",)}
 _SWEEP_SPEC = "MATERIAL.FIELD=START:STOP:N (e.g. glass.B=0.002:0.02:8)"
+
+#: The SceneConstants fields that differ between items (a band's tables and what is
+#: computed from them); the others hold the geometry and are shared.
+_ITEM_CONSTANTS = ("lamp_spectra", "sky", "tables")
+_CONSTANT_AXES = SceneConstants(*(0 if name in _ITEM_CONSTANTS else None
+                                  for name in SceneConstants._fields))
 
 
 # --------------------------------------------------------------------------------------------
@@ -163,59 +145,39 @@ def memory_budget(devices: Sequence[jax.Device] | None = None) -> int:
     return max(budget, 1)
 
 
+
 @dataclasses.dataclass(frozen=True)
 class BatchPlan:
-    """How a batch is cut: ``items`` per call (a multiple of ``devices``), ``chunk`` rays per
-    item and call; ``bytes`` the planned memory of a group (device and host together)."""
+    """How a batch is cut: ``items`` per call (a multiple of ``devices``); ``bytes`` the
+    planned memory of a group (device and host together) within ``budget``."""
 
     items: int
-    chunk: int
     devices: int
     budget: int
     bytes: int
 
 
-def _pow2_floor(n: int) -> int:
-    return 1 << (max(1, int(n)).bit_length() - 1)
-
-
-def _pow2_ceil(n: int) -> int:
-    return 1 << max(0, int(n) - 1).bit_length()
-
-
 def plan_batch(batch: int, rays_per_item: int, *, memory_bytes: int, devices: int = 1,
-               lamps: int = 0) -> BatchPlan:
-    """Items per call and rays per item and call for a batch of ``batch`` items of
-    ``rays_per_item`` camera rays each within ``memory_bytes``.
+               lamps: int = 0, pixels_per_item: int = 0) -> BatchPlan:
+    """Items per call for a batch of ``batch`` items within ``memory_bytes``.
 
-    Why this order: a call's cost is dominated by the engine's loop, whose passes cost
-    about the same for few rays as for many, so the plan first fits as many items as it
-    can at a chunk of a whole level-0 image (powers of two, at most
-    :data:`jrt.whitted.CHUNK`; fewer distinct shapes, fewer compiles), rounds that down to a
-    multiple of ``devices`` (the sharding needs equal shares; at least one item a device),
-    and only when that does not fit halves the chunk, down to :data:`MIN_CHUNK`. A budget
-    below one call of ``devices`` items of :data:`MIN_CHUNK` rays cannot be met by
-    chunking and gets that smallest call.
+    ``rays_per_item``: the ray slots an item's tree holds at once (its level-0 capacity
+    plus a later level's); ``pixels_per_item``: its pixels times channels (the host's
+    copy). As many items as fit, in equal shares of the ``devices``: the whole batch
+    padded up to whole shares when it fits, else rounded down to them, and at least one
+    item a device (a budget below that smallest call gets it anyway).
     """
     for name, value in (("batch", batch), ("rays_per_item", rays_per_item),
                         ("memory_bytes", memory_bytes), ("devices", devices)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    ray_bytes = RAY_BYTES + LAMP_RAY_BYTES * int(lamps)
-    host = int(rays_per_item) * HOST_RAY_BYTES
-
-    def cost(items, chunk):
-        return CALL_BYTES + items * (chunk * ray_bytes + host)
-
-    chunk = min(max(_pow2_ceil(rays_per_item), MIN_CHUNK), whitted.CHUNK)
-    per_item = chunk * ray_bytes + host
+    per_item = (int(rays_per_item) * (RAY_BYTES + LAMP_RAY_BYTES * int(lamps))
+                + int(pixels_per_item) * HOST_PIXEL_BYTES)
     items = int(min(batch, max(1, (memory_bytes - CALL_BYTES) // per_item)))
-    # Equal shares per device: down to a multiple of the devices, or up to one item each.
-    items = max(devices, items // devices * devices)
-    while chunk > MIN_CHUNK and cost(items, chunk) > memory_bytes:
-        chunk //= 2
-    return BatchPlan(items=items, chunk=chunk, devices=int(devices), budget=int(memory_bytes),
-                     bytes=cost(items, chunk))
+    # Equal shares per device: the whole batch padded up, else down to whole shares.
+    items = (-(-items // devices) if items == batch else max(1, items // devices)) * devices
+    return BatchPlan(items=items, devices=int(devices), budget=int(memory_bytes),
+                     bytes=CALL_BYTES + items * per_item)
 
 
 # --------------------------------------------------------------------------------------------
@@ -246,7 +208,7 @@ def turntable(setup: RenderSetup, frames: int, *, width: int | None = None,
 
 def with_camera(setup: RenderSetup, camera: Camera) -> RenderSetup:
     """``setup`` looking through ``camera`` (and at its image size): the single render of a
-    batch item is ``whitted.render_radiance(with_camera(setup, camera))``."""
+    batch item is that of ``wavefront.renderer(with_camera(setup, camera))``."""
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a jrt.Camera, got {type(camera).__name__}")
     spec = dataclasses.replace(setup.scene.camera, width=camera.width, height=camera.height)
@@ -385,8 +347,9 @@ def _lamp_spectrum(scene: Scene) -> str:
 
 def band_setup(setup: RenderSetup, lo: float, hi: float) -> RenderSetup:
     """``setup`` sampling the band ``[lo, hi]`` nm (360 <= lo < hi <= 830) with its own
-    sample count: what :func:`render_batch` renders for an item of ``bands``, so that
-    ``whitted.render_radiance(band_setup(setup, lo, hi))`` is that item's single render.
+    sample count: what :func:`render_batch` renders for an item of ``bands`` (its
+    constants), so that ``wavefront.renderer(band_setup(setup, lo, hi))`` renders that
+    item's single render.
     Each band's lamps are scaled to luminance 1 over the band, as a single render is."""
     if not setup.spectral:
         raise ValueError("wavelength bands need a spectral setup (a material with Cauchy "
@@ -428,17 +391,46 @@ def _check_variant(setup: RenderSetup, scene: Scene, i: int) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+def camera_parameters(camera: Camera) -> dict:
+    """``params["camera"]`` (:func:`jrt.params.scene_parameters`) of ``camera``."""
+    return {"eye": jnp.asarray(camera.eye, jnp.float32),
+            "target": jnp.asarray(camera.target, jnp.float32),
+            "up": jnp.asarray(camera.up, jnp.float32),
+            "vfov": jnp.asarray(camera.vfov, jnp.float32)}
+
+
+def variant_parameters(params: dict, scene: Scene) -> dict:
+    """A copy of ``params`` with ``scene``'s material values and ambient share written in
+    (every continuous field: albedo, reflectance, index or A and B, ambient). A dielectric
+    comes out as ``{"A", "B"}`` whatever its form, so that variants with and without a
+    Cauchy term stack (and render the same rows as the single render's ``{"index"}``)."""
+    out = jax.tree.map(lambda x: x, params)  # new containers, the same leaves
+    for mat in scene.materials:
+        if mat.kind == "diffuse":
+            value = {"albedo": jnp.asarray(mat.albedo, jnp.float32)}
+        elif mat.kind == "mirror":
+            value = {"reflectance": jnp.asarray(mat.reflectance, jnp.float32)}
+        else:
+            a, b = mat.cauchy if mat.cauchy is not None else (mat.index, 0.0)
+            value = {"A": jnp.asarray(a, jnp.float32), "B": jnp.asarray(b, jnp.float32)}
+        out["materials"][mat.name] = value
+    out["settings"]["ambient"] = jnp.asarray(scene.settings.ambient, jnp.float32)
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class BatchStats:
     """What a batched render did.
 
-    ``rays_per_level[b]`` and ``shadow_rays[b]``: item b's rays, as
-    :class:`jrt.whitted.RenderStats` counts them. ``seconds``: the whole batch, compile
-    included; ``compile_seconds`` the part spent compiling. ``items_per_call`` and
-    ``chunk``: the :class:`BatchPlan` used (after the memory check); ``calls``: compiled
-    calls made. ``devices``: the local devices the batch was split over; ``placement``:
-    ``(device id, first item, stop)`` of every shard of the last call's output, the proof of
-    the split.
+    ``rays_per_level[b]`` and ``shadow_rays[b]``: item b's rays, from its
+    :class:`jrt.wavefront.TreeStats` (counted as :class:`jrt.whitted.RenderStats` counts a
+    single render's). ``seconds``: the whole batch, compile included; ``compile_seconds``
+    the part spent compiling. ``items_per_call``: the group size used (after the memory
+    check); ``capacities``: the level capacities of the last call; ``calls``: compiled calls
+    made (a group renders again after an overflow). ``devices``: the local devices the batch
+    was split over; ``call_bytes``: the program's memory (measured, else planned);
+    ``placement``: ``(device id, first item, stop)`` of every shard of the last call's
+    output, the proof of the split.
     """
 
     batch: int
@@ -451,7 +443,7 @@ class BatchStats:
     seconds: float
     compile_seconds: float
     items_per_call: int
-    chunk: int
+    capacities: tuple[int, ...]
     calls: int
     devices: int
     memory_budget: int
@@ -470,122 +462,44 @@ class BatchStats:
         return (f"{self.batch} images {self.width}x{self.height} ({self.channels} channels), "
                 f"depth {self.max_depth}: {self.total_rays:,} rays in {self.seconds:.2f} s "
                 f"(compile {self.compile_seconds:.2f} s), {self.images_per_second:.3f} "
-                f"images/s; {self.items_per_call} items x {self.chunk:,} rays a call, "
-                f"{self.calls} calls, {self.devices} device(s)")
+                f"images/s; {self.items_per_call} items a call, {self.calls} calls, "
+                f"{self.devices} device(s)")
 
 
-#: Compiled batched level functions, keyed by static arguments, batch axes and shapes.
+#: Compiled batched programs and their measured bytes (None where the backend does not
+#: say), keyed by the renderer's static shape, the devices and the arguments' shapes.
 _COMPILED: dict = {}
 
 
-def _batched_level(static, axes: SceneArrays):
-    """The level function vmapped over items: per-item rays (axis 0) and the SceneArrays
-    leaves marked 0 in ``axes``; the structure and the key shared."""
-    level = whitted._shade_chunk.__wrapped__  # un-jitted: the program is this one
-
-    def one(structure, arrays, origins, directions, weights, channels, valid, key):
-        return level(structure, arrays, origins, directions, weights, channels, valid, key,
-                     static=static)
-
-    return jax.vmap(one, in_axes=(None, axes, 0, 0, 0, 0, 0, None))
-
-
-def _compile(args, static, axes, mesh: Mesh, timing: dict):
+def _compiled(args, shape, mesh: Mesh, timing: dict) -> tuple:
+    """``(program, bytes)``: the vmapped tree program for ``args``, compiled once, and its
+    own memory (``memory_analysis()``: per device, times the devices)."""
     leaves, treedef = jax.tree.flatten(args)
-    signature = (static, tuple(a is not None for a in axes), treedef,
-                 tuple(d.id for d in mesh.devices.flat),
+    signature = (shape, tuple(d.id for d in mesh.devices.flat), treedef,
                  tuple((np.shape(x), str(x.dtype)) for x in leaves))
-    exe = _COMPILED.get(signature)
-    if exe is None:
+    if signature not in _COMPILED:
+        def one(params, constants, origins, directions, structure, threshold, key, depth):
+            return wavefront._tree_program(params, constants, structure, threshold, key,
+                                           origins, directions, depth, shape=shape)
+
+        batched = jax.vmap(one, in_axes=(0, _CONSTANT_AXES, 0, 0, None, None, None, None))
         start = time.perf_counter()
-        batch = NamedSharding(mesh, PartitionSpec("batch"))
-        exe = jax.jit(_batched_level(static, axes), out_shardings=batch).lower(*args).compile()
+        program = jax.jit(batched, out_shardings=NamedSharding(
+            mesh, PartitionSpec("batch"))).lower(*args).compile()
         timing["compile"] = timing.get("compile", 0.0) + time.perf_counter() - start
-        _COMPILED[signature] = exe
-    return exe
+        try:
+            m = program.memory_analysis()
+            measured = (m.temp_size_in_bytes + m.output_size_in_bytes
+                        + m.argument_size_in_bytes) * mesh.devices.size
+        except Exception:  # noqa: BLE001  (not every backend reports it)
+            measured = None
+        _COMPILED[signature] = program, measured
+    return _COMPILED[signature]
 
 
-def _measured_bytes(exe, devices: int) -> int | None:
-    """The compiled program's own memory (per device, times the devices), if reported."""
-    try:
-        m = exe.memory_analysis()
-        per = m.temp_size_in_bytes + m.output_size_in_bytes + m.argument_size_in_bytes
-    except Exception:  # noqa: BLE001  (not every backend reports it)
-        return None
-    return int(per) * devices
-
-
-#: SceneArrays leaves that hold the geometry: the same in every item (never batched).
-GEOMETRY_FIELDS = ("vertices", "faces", "normals", "material")
-
-
-def _stack_arrays(items: list[SceneArrays]) -> tuple[SceneArrays, SceneArrays]:
-    """(arrays, axes): the geometry leaves once (axis None), every other leaf (materials,
-    lamps, sky, channel tables: a few hundred bytes an item) stacked on a leading item axis
-    (axis 0), whether it varies or not, so that a turntable, a sweep and a set of bands
-    share one compiled program."""
-    fields, axes = [], []
-    for name, values in zip(SceneArrays._fields, zip(*items, strict=True), strict=True):
-        if name in GEOMETRY_FIELDS:
-            fields.append(values[0])
-            axes.append(None)
-        else:
-            fields.append(np.stack([np.asarray(v) for v in values]))
-            axes.append(0)
-    return SceneArrays(*fields), SceneArrays(*axes)
-
-
-def _level_of(rays: Rays, parts: list, k: int) -> whitted.Level:
-    """A :class:`jrt.whitted.Level` from one item's chunk outputs, as shade_level builds it."""
-    return whitted.level_from_chunks(parts, rays, k)
-
-
-def _chunk_inputs(rays: list[Rays], start: int, chunk: int, k: int):
-    """Item-stacked padded chunk ``[start, start + chunk)`` of each item's rays (NumPy), the
-    padding as in ``jrt.whitted._chunk_args`` (unit directions, invalid)."""
-    p = len(rays)
-    origins = np.zeros((p, chunk, 3), np.float32)
-    directions = np.tile(np.float32([0, 0, 1]), (p, chunk, 1))
-    weights = np.zeros((p, chunk, k), np.float32)
-    channels = np.zeros((p, chunk), np.int32)
-    valid = np.zeros((p, chunk), bool)
-    counts = []
-    for i, r in enumerate(rays):
-        m = max(0, min(chunk, len(r) - start))
-        counts.append(m)
-        if m:
-            s = slice(start, start + m)
-            origins[i, :m] = r.origins[s]
-            directions[i, :m] = r.directions[s]
-            weights[i, :m] = r.weights[s]
-            channels[i, :m] = r.channels[s]
-            valid[i, :m] = True
-    return (origins, directions, weights, channels, valid), counts
-
-
-def _collect(out, counts: list[int], parts: list[list]) -> tuple[tuple[int, int, int], ...]:
-    """Fetch one call's outputs and append item i's first ``counts[i]`` rows to
-    ``parts[i]`` (padding items have no part); returns the outputs' placement
-    ``(device id, first item, stop)`` per shard."""
-    items = out.contributions.shape[0]
-    placement = tuple((s.device.id, s.index[0].start or 0, s.index[0].stop or items)
-                      for s in out.contributions.addressable_shards)
-    out = jax.device_get(out)
-    for i, (m, part) in enumerate(zip(counts, parts, strict=False)):
-        if m:
-            part.append(whitted._ChunkOut(
-                *(x[i][:m] if j < 9 else int(x[i]) for j, x in enumerate(out))))
-    return placement
-
-
-class _Item:
-    """One batch item's host state through the levels (as render_radiance keeps it)."""
-
-    def __init__(self, rays: Rays, pixels: int, channels: int):
-        self.rays = rays
-        self.radiance = np.zeros((pixels, channels), np.float64)
-        self.per_level: list[int] = []
-        self.shadow_rays = 0
+def _stack(trees: list):
+    """The pytrees ``trees`` (one structure) as one, every leaf stacked on a new axis 0."""
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *trees)
 
 
 def _as_cameras(cameras, width, height) -> list[Camera] | None:
@@ -627,7 +541,7 @@ def render_batch(
         bands: float [B, 2], each item's wavelength band ``[lo, hi]`` nm (spectral setups),
             sampled with the setup's sample count; default the setup's tables.
         width, height: image size; default the cameras' (or the scene camera's).
-        max_depth, threshold: as :func:`jrt.whitted.render_radiance` (default the setup's).
+        max_depth, threshold: as :func:`jrt.wavefront.renderer` (default the setup's).
         memory_bytes: the budget for :func:`plan_batch`; default :func:`memory_budget`.
 
     Returns:
@@ -662,129 +576,105 @@ def render_batch(
                          + ", ".join(f"{k} {v}" for k, v in given.items()))
     batch = next(iter(given.values()))
     if batch < 1:
-        raise ValueError("a batch needs at least one item, got empty "
-                         + ", ".join(given))
-    depth = setup.features.max_depth if max_depth is None else max_depth
-    if isinstance(depth, bool) or not isinstance(depth, int | np.integer) or not 1 <= depth <= 64:
-        raise ValueError(f"max_depth must be an integer in 1..64, got {max_depth!r}")
-    threshold = setup.scene.settings.threshold if threshold is None else float(threshold)
-    if not 0.0 <= threshold < 1.0:
-        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
+        raise ValueError("a batch needs at least one item, got empty " + ", ".join(given))
     devices = list(jax.local_devices())
     budget = memory_budget(devices) if memory_bytes is None else memory_bytes
     if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or budget < 1:
         raise ValueError(f"memory_bytes must be a positive integer (bytes), got {budget!r}")
-
-    # Per item: camera and SceneArrays.
-    if cameras is None:
-        cameras = [setup.camera(width, height)] * batch
     if scenes is not None:
         for i, s in enumerate(scenes):
             _check_variant(setup, s, i)
-    arrays = []
+
+    # Per item: parameters and constants (the renderer's, with the item's changes).
+    camera0 = cameras[0] if cameras is not None else setup.camera(width, height)
+    _, depth, threshold = whitted.render_arguments(  # checked, the scene's defaults
+        setup, max_depth=max_depth, samples=None, mode="tree", spp=1, features=None,
+        threshold=threshold)
+    render = wavefront.cached_renderer(setup, width=camera0.width, height=camera0.height,
+                                       max_depth=depth, threshold=threshold)
+    base = variant_parameters(render.params, setup.scene)
+    params, constants = [], []
     for i in range(batch):
-        if scenes is None and bands is None:
-            arrays.append(setup.arrays)
-            continue
-        scene = setup.scene if scenes is None else scenes[i]
-        tables = setup.tables
+        item = base if scenes is None else variant_parameters(base, scenes[i])
+        if cameras is not None:
+            item = {**item, "camera": camera_parameters(cameras[i])}
+        params.append(item)
         if bands is not None:
             lo, hi = (float(x) for x in bands[i])
             try:
-                tables = spectral_tables(setup.tables.samples, _lamp_spectrum(setup.scene),
-                                         lo, hi)
+                own = scene_constants(band_setup(setup, lo, hi))
             except ValueError as exc:
                 raise ValueError(f"bands[{i}] = [{lo:g}, {hi:g}] nm: {exc}") from None
-        geometry = dataclasses.replace(setup.geometry, materials=scene.materials)
-        arrays.append(whitted._scene_arrays(scene, geometry, tables, setup.spectral))
-    stacked, axes = _stack_arrays(arrays)
-
-    static = whitted._static(setup, "tree")
-    k, c = setup.ray_channels, setup.channels
-    camera0 = cameras[0]
-    pixels = camera0.num_rays
-    rays0 = pixels * (c if setup.spectral else 1)
-    plan = plan_batch(batch, rays0, memory_bytes=int(budget), devices=len(devices),
-                      lamps=setup.features.lamps)
+        else:
+            own = render._constants
+        constants.append({name: getattr(own, name) for name in _ITEM_CONSTANTS})
     mesh = Mesh(np.asarray(devices), ("batch",))
-    shared = NamedSharding(mesh, PartitionSpec())
+    replicated = NamedSharding(mesh, PartitionSpec())
     split = NamedSharding(mesh, PartitionSpec("batch"))
-    structure = jax.device_put(setup.device_structure, shared)
-    key = jax.device_put(jax.random.PRNGKey(0), shared)
-    host_group = plan.items * rays0 * HOST_RAY_BYTES
+    shared = jax.device_put((render._constants, setup.device_structure, render._threshold,
+                             render._key, render.depth_argument), replicated)
+
+    def call_args(indices):
+        """The program's arguments for the items ``indices``, stacked and split."""
+        constants_b = shared[0]._replace(  # the geometry shared, the rest per item
+            **jax.device_put(_stack([constants[i] for i in indices]), split))
+        # Each item's camera rays by the single renderer's own call (bit for bit its rays).
+        rays = {i: wavefront._camera_rays(params[i]["camera"], render.shape())
+                for i in set(indices)}
+        origins, directions = (jax.device_put(np.stack([rays[i][j] for i in indices]), split)
+                               for j in (0, 1))
+        return (jax.device_put(_stack([params[i] for i in indices]), split), constants_b,
+                origins, directions, *shared[1:])
+
     timing: dict = {}
-    items_per_call, chunk = plan.items, plan.chunk
+    pixels = camera0.num_rays * setup.channels
 
-    def group_arrays(indices):
-        fields = [(jax.device_put(v[np.asarray(indices)], split) if a is not None
-                   else jax.device_put(v, shared)) for v, a in zip(stacked, axes, strict=True)]
-        return SceneArrays(*fields)
+    def fit(items):
+        """The program for ``items`` a call at the renderer's capacities, the group halved
+        (in whole shares of the devices) while its measured memory is over the budget."""
+        while True:
+            program, measured = _compiled(call_args([0] * items), render.shape(), mesh,
+                                          timing)
+            host = items * pixels * HOST_PIXEL_BYTES
+            if measured is None or measured + host <= budget or items <= len(devices):
+                return program, items, measured
+            items = max(len(devices), items // 2 // len(devices) * len(devices))
 
-    def call_args(arrays_dev, host_inputs):
-        return (structure, arrays_dev, *(jax.device_put(x, split) for x in host_inputs), key)
+    capacities = render.capacities
+    plan = plan_batch(batch, capacities[0] + max(capacities[1:], default=0),
+                      memory_bytes=int(budget), devices=len(devices),
+                      lamps=setup.features.lamps, pixels_per_item=pixels)
+    program, items, measured = fit(plan.items)
+    images, levels, shadow = [], [], []
+    calls, placement, rerenders = 0, (), 0
+    while len(images) < batch:
+        real = list(range(len(images), min(len(images) + items, batch)))
+        radiance, stats = program(*call_args(real + [real[0]] * (items - len(real))))
+        calls += 1
+        host = jax.device_get(stats)
+        raise_on_status(np.bitwise_or.reduce(host.status))
+        worst = host.demand.max(axis=0)[:depth]
+        if (worst > np.asarray(render.capacities)).any():  # grow, and render the group again
+            rerenders += 1
+            if rerenders > wavefront.MAX_RERENDERS:  # pragma: no cover - each fixes a level
+                raise RuntimeError(f"level capacities still overflow after {rerenders} renders")
+            render.capacities = wavefront.grown_capacities(render.capacities, worst)
+            program, items, measured = fit(items)
+            continue
+        placement = tuple((s.device.id, s.index[0].start or 0, s.index[0].stop or items)
+                          for s in radiance.addressable_shards)
+        images.extend(np.asarray(jax.device_get(radiance)[:len(real)], np.float64))
+        levels.extend(tuple(int(r) for r in row[:depth]) for row in host.rays[:len(real)])
+        shadow.extend(int(r) for r in host.shadow_rays[:len(real)])
 
-    # Compile once, and shrink the chunk while the program's own memory is over the budget.
-    probe = group_arrays([0] * items_per_call)
-    while True:
-        dummy = [whitted._empty_rays(k)] * items_per_call
-        exe = _compile(call_args(probe, _chunk_inputs(dummy, 0, chunk, k)[0]), static, axes,
-                       mesh, timing)
-        measured = _measured_bytes(exe, len(devices))
-        if measured is None or measured + host_group <= budget or chunk <= MIN_CHUNK:
-            break
-        chunk //= 2
-    call_bytes = measured if measured is not None else plan.bytes - host_group
-
-    results: list[_Item] = []
-    calls = 0
-    placement: tuple = ()
-    for first in range(0, batch, items_per_call):
-        real = list(range(first, min(first + items_per_call, batch)))
-        indices = real + [real[0]] * (items_per_call - len(real))  # padding items
-        arrays_dev = group_arrays(indices)
-        group = [_Item(whitted.camera_level(setup, cameras[i]), pixels, c) for i in real]
-        empty = [whitted._empty_rays(k)] * (items_per_call - len(real))
-        for level in range(depth):
-            rays = [g.rays for g in group]
-            longest = max(len(r) for r in rays)
-            for g in group:
-                g.per_level.append(len(g.rays))
-            if longest == 0:
-                continue
-            parts: list[list] = [[] for _ in group]
-            # Two calls in flight: the next chunk is laid out and dispatched while the
-            # device still works on the last one (JAX dispatches asynchronously).
-            pending = None
-            for begin in range(0, longest, chunk):
-                inputs, counts = _chunk_inputs(rays + empty, begin, chunk, k)
-                out = exe(*call_args(arrays_dev, inputs))
-                calls += 1
-                if pending is not None:
-                    placement = _collect(*pending, parts)
-                pending = (out, counts)
-            placement = _collect(*pending, parts)
-            for g, r, p in zip(group, rays, parts, strict=True):
-                result = _level_of(r, p, k)
-                g.shadow_rays += result.shadow_rays
-                whitted._accumulate(g.radiance, r, result.contributions, setup.spectral)
-                children = result.children
-                if level == depth - 1 or not len(children):
-                    g.rays = whitted._empty_rays(k)
-                    continue
-                keep = children.weights.max(axis=1) >= threshold
-                g.rays = children.take(np.flatnonzero(keep))
-        results.extend(group)
-
-    shape = (camera0.height, camera0.width, c)
-    radiance = np.stack([g.radiance.reshape(shape) for g in results])
     stats = BatchStats(
-        batch=batch, width=camera0.width, height=camera0.height, channels=c, max_depth=depth,
-        rays_per_level=tuple(tuple(g.per_level) for g in results),
-        shadow_rays=tuple(g.shadow_rays for g in results),
+        batch=batch, width=camera0.width, height=camera0.height, channels=setup.channels,
+        max_depth=depth, rays_per_level=tuple(levels), shadow_rays=tuple(shadow),
         seconds=time.perf_counter() - start, compile_seconds=timing.get("compile", 0.0),
-        items_per_call=items_per_call, chunk=chunk, calls=calls, devices=len(devices),
-        memory_budget=int(budget), call_bytes=int(call_bytes), placement=placement)
-    return radiance, stats
+        items_per_call=items, capacities=tuple(render.capacities), calls=calls,
+        devices=len(devices), memory_budget=int(budget),
+        call_bytes=int(measured if measured is not None else plan.bytes), placement=placement)
+    return np.stack(images), stats
 
 
 def batch_to_srgb(radiance: Float[ArrayLike, "b h w c"], setup: RenderSetup,
@@ -816,26 +706,9 @@ def process_items(count: int) -> Sequence[int]:
 
 
 __all__ = [
-    "DEVICE_FRACTION",
-    "HOST_FRACTION",
-    "MIN_CHUNK",
-    "SWEEP_FIELDS",
-    "BatchPlan",
-    "BatchStats",
-    "Sweep",
-    "band_setup",
-    "batch_to_srgb",
-    "covering_features",
-    "device_memory",
-    "host_memory",
-    "memory_budget",
-    "parse_sweep",
-    "plan_batch",
-    "prepare_sweep",
-    "process_items",
-    "render_batch",
-    "sweep_scenes",
-    "turntable",
+    "DEVICE_FRACTION", "HOST_FRACTION", "SWEEP_FIELDS", "BatchPlan", "BatchStats", "Sweep",
+    "band_setup", "batch_to_srgb", "camera_parameters", "covering_features", "device_memory",
+    "host_memory", "memory_budget", "parse_sweep", "plan_batch", "prepare_sweep",
+    "process_items", "render_batch", "sweep_scenes", "turntable", "variant_parameters",
     "with_camera",
 ]
-

@@ -191,7 +191,7 @@ def _render_scene(args) -> int:
     geometry = setup.geometry
     print(f"{geometry.mesh.summary()}; {scene.settings.accel} built in "
           f"{setup.structure.stats.get('build_seconds', float('nan')):.2f} s")
-    image, stats = render_scene(setup, width=width, height=height)
+    image, stats = render_scene(setup, width=width, height=height, spp=args.spp)
     out = Path(args.output or f"{scene.name}.png")
     out.parent.mkdir(parents=True, exist_ok=True)
     io.imsave(out, np.round(np.clip(image, 0, 1) * 255).astype(np.uint8), check_contrast=False)
@@ -346,6 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="--scene: levels of the Whitted tree (default the scene's)")
     render.add_argument("--samples", type=_positive_int, default=None,
                         help="--scene: wavelength samples with dispersion (default the scene's)")
+    render.add_argument("--spp", type=_positive_int, default=1,
+                        help="--scene: camera rays per pixel at stratified sub-pixel positions "
+                        "(anti-aliasing; default 1, the pixel centre)")
     render.add_argument("--turntable", type=_frames, default=None, metavar="N",
                         help="--scene: N frames around the camera's target (360/N degrees "
                         "about +y) in one batch: -o DIR (default SCENE-turntable) gets "

@@ -15,7 +15,10 @@ The folder (:func:`cache_dir`):
 * if ``JAX_COMPILATION_CACHE_DIR`` is set, JAX's own setting wins and jrt changes nothing.
 
 JAX does not store a program that makes a host callback (``jax.debug.callback``): such a
-program compiles in every run.
+program compiles in every run. The renderer's programs have none (the traversal's status
+and the levels' overflow come out as values and are checked on the host), so a scene render
+is stored whole: a 96x72 glass camel's first frame in a new process compiled 2.2 s
+instead of 15 s (mostly loading the stored program).
 
 A folder that cannot be created or written to costs one note on stderr; the command runs
 without the cache. Delete the folder to empty it (JAX keys each entry by the program, the

@@ -3,6 +3,8 @@
     setup = prepare(load_scene("glass-camel"))            # NumPy side: arrays, structure
     image, stats = render_scene(setup, width=320, height=240)
     radiance, stats = render_radiance(setup, max_depth=4)  # linear, per channel
+    render, params = renderer(setup, width=320, height=240)  # a pure function of params
+    radiance = render(params)                              # jnp [H, W, C]
 
 The tree (Whitted, "An improved illumination model for shaded display", CACM 23(6), 1980;
 the seed's ``couleur = kR·lancer(réfléchi) + kT·lancer(réfracté)``). Rays leave the eye
@@ -30,31 +32,36 @@ Directions use the shading normal ``n_s`` (the hit face's corner normals interpo
 barycentrics, :func:`jrt.normals.corner_normals`); where it would send a child to the
 wrong side of the geometric surface (or faces away from the ray), that hit uses ``n_g``.
 
-**Channels.** A scene with dispersion (a Cauchy ``B != 0``) is rendered spectrally: every
-camera ray is replicated per wavelength sample (``settings.samples``), each replica carries
-one scalar weight and its wavelength index, and follows its own path since ``n`` depends on
-``λ`` (seed, dispersion). Without dispersion one tree per pixel carries an RGB weight
-(3 channels, :func:`jrt.spectral.rgb_tables`). One code path: a ray's weight has ``K``
-channels, ``K = 1`` (spectral) or ``3`` (RGB); the radiance per pixel has ``C = S`` or ``3``
-channels and goes to sRGB through :mod:`jrt.spectral` (its radiance convention: lamp units,
-the illuminant multiplied in by the renderer; every lamp is scaled to luminance Y = 1 at
-intensity 1).
+**Channels.** A scene with dispersion (a Cauchy ``B != 0``) is rendered spectrally, over
+``settings.samples`` wavelength samples; since ``n`` depends on ``λ`` (seed, dispersion) each
+sample follows its own path through the glass. A camera ray, though, carries all of them as
+a *bundle* (weights over the C samples) to its first surface: its hit, its shadow rays and
+a diffuse or background contribution are the same for every wavelength, and only its
+children part, one ray per sample (weights [1] and a wavelength index), wavelength-major,
+in the order the host tree gives. Without dispersion one tree per pixel carries an RGB
+weight (3 channels, :func:`jrt.spectral.rgb_tables`). One code path: a ray's weight has
+``K`` channels, ``K = 1`` (one sample), ``C`` (a bundle) or ``3`` (RGB); the radiance per
+pixel has ``C = S`` or ``3`` channels and goes to sRGB through :mod:`jrt.spectral` (its
+radiance convention: lamp units, the illuminant multiplied in by the renderer; every lamp is
+scaled to luminance Y = 1 at intensity 1).
 
-**Wavefront.** The tree is unrolled in Python, one level at a time, up to ``max_depth``
-levels (level 0: the camera rays). Each level is one batched closest-hit over all its live
-rays, cut into fixed-size chunks (padded; padding rays have ``tmax = 0``) that go through
-*one* jitted function, :func:`_shade_chunk`, whose static arguments are the scene's
-:class:`jrt.scene.Features` (with the depth taken out: it is handled between levels), the
-kernel, the background and the mode. The whole render compiles once, whatever the level
-sizes; an opaque scene compiles no Fresnel or refraction code, a scene without mirrors no
-mirror branch, a scene without lamps no shadow rays. Between levels the live children are
-compacted in NumPy; a child whose weight (largest channel) is below ``settings.threshold``
-is pruned, exactly (its weight is counted in ``stats.dropped_weight``). **Past the maximum
-depth** the children left are not traced: they contribute black (their weight is
-``stats.truncated_weight``). A render at depth ``d`` is therefore exactly the sum of levels
-``0..d-1`` of any deeper render (``render_radiance(..., by_depth=True)``).
+**One compiled program.** :func:`render_radiance` and :func:`render_scene` run
+:func:`renderer` (:mod:`jrt.wavefront`): every level of the tree inside one jitted program,
+a pure function of the scene's parameters, with no host step between levels. Each level is
+one batched closest hit over its live rays, shaded by :func:`_shade_chunk`, whose static
+arguments are the scene's :class:`jrt.scene.Features` (with the depth taken out), the
+kernel, the background and the mode: an opaque scene compiles no Fresnel or refraction
+code, a scene without mirrors no mirror branch, a scene without lamps no shadow rays. A
+child whose weight (largest channel) is below ``settings.threshold`` is pruned, exactly
+(its weight is counted in ``stats.dropped_weight``). **Past the maximum depth** the children
+left are not traced: they contribute black (their weight is ``stats.truncated_weight``).
+:func:`host_radiance` is the same tree stepped from the host, one level and one
+:data:`CHUNK` of rays per device call, NumPy compaction between levels and every camera ray
+per wavelength sample: slower, and an independent route the tests compare the renderer
+with (and it can return the image at every depth, ``by_depth=True``: a render at depth
+``d`` is exactly the sum of levels ``0..d-1`` of any deeper render).
 
-**Rays per pixel.** Per camera ray (per pixel and wavelength sample), level ``d`` holds at
+**Rays per pixel.** Per camera ray and wavelength sample, level ``d`` holds at
 most ``2^d`` rays with glass (each dielectric hit doubles, total internal reflection and
 misses and diffuse hits end branches), at most 1 with mirrors only; up to depth ``D`` at most
 ``2^D - 1`` rays in all, plus one shadow ray per lamp per diffuse hit. Pruning by weight
@@ -66,8 +73,9 @@ numbers are in ``stats.rays_per_pixel_by_depth`` (rays at level d per camera ray
 reflected with probability ``R``, refracted otherwise, with its weight unchanged (the
 estimator ``R × L_r / p = L_r``, pbrt-v4 §13.1.2 / §9.5 on sampling Fresnel); every level has
 at most as many rays as the one before. ``spp`` such paths per pixel (and wavelength), all
-through the pixel centre, are averaged: the expectation is the tree's image, so the two can
-be compared error against time.
+through the pixel centre, are averaged: the expectation is the tree's image (at ``spp =
+1``), so the two can be compared error against time. In the tree, ``spp`` is anti-aliasing:
+camera rays through stratified positions of the pixel (:func:`jrt.camera.subpixel_offsets`).
 
 **Leaving a surface.** Secondary and shadow rays start at the barycentric hit point moved
 off the surface by pbrt-v4's error bound (Pharr, Jakob & Humphreys, *Physically Based
@@ -107,7 +115,7 @@ from jrt.spectral import (
     spectral_tables,
     spectrum_to_srgb,
 )
-from jrt.trace import closest_hit, occluded
+from jrt.trace import query_status, raise_on_status
 
 #: Rays per call of the compiled level function (padded up to it).
 CHUNK = 1 << 15
@@ -432,6 +440,9 @@ class _Static:
     sky: bool
     sampled: bool
     schlick: bool  # Schlick's approximation instead of the full Fresnel equations
+    # Spectral mode only: the rays are bundles carrying every wavelength sample (weights
+    # [N, C]); their children are split, one ray per wavelength sample (weights [N, 1]).
+    bundle: bool = False
 
 
 def _normalise(v):
@@ -450,27 +461,31 @@ def offset_origin(point, error, n, direction):
     return jnp.nextafter(moved, away)
 
 
-def _pick(table, channels, spectral: bool):
-    """[N, C] per-ray rows -> [N, K]: the ray's own wavelength sample (spectral) or all."""
-    if spectral:
+def _pick(table, channels, per_ray: bool):
+    """[N, C] per-ray rows -> [N, K]: the ray's own wavelength sample (a spectral ray
+    carrying one sample) or all of them (RGB, or a spectral bundle)."""
+    if per_ray:
         return jnp.take_along_axis(table, channels[:, None], axis=1)
     return table
 
 
 class _ChunkOut(NamedTuple):
-    """One chunk's results. B = 2 children slots (reflected, refracted) for the tree with
-    glass, else 1."""
+    """One chunk's results. B children slots: (reflected, refracted) for the tree with
+    glass, else 1; a spectral bundle's children are split per wavelength sample, B = C x
+    those slots, wavelength-major."""
 
     contributions: Float[Array, "n k"]
     kinds: Int[Array, " n"]  # KIND_CODES, MISS
-    tir: Array  # bool [N]
+    tir: Array  # bool [N] (a bundle: under any of its wavelength samples)
     triangles: Int[Array, " n"]  # hit triangle, -1
     t: Float[Array, " n"]  # hit distance, inf
     child_origins: Float[Array, "n b 3"]
     child_directions: Float[Array, "n b 3"]
-    child_weights: Float[Array, "n b k"]
+    child_weights: Float[Array, "n b kc"]
     child_alive: Array  # bool [N, B]
+    child_channels: Int[Array, "n b"]  # each child's wavelength sample index (0 in RGB)
     shadow_rays: Int[Array, ""]
+    status: Int[Array, ""]  # the queries' jrt.engine.STATUS_* bits, ORed
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
@@ -480,11 +495,13 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
     a :class:`_ChunkOut`. ``valid`` [N] marks the real rays (the rest is padding)."""
     f = static.features
     spectral = f.dispersion
+    per_ray = spectral and not static.bundle  # the ray carries one wavelength sample
     n = origins.shape[0]
     k = weights.shape[1]
     c = scene.sky.shape[1]
     tmax = jnp.where(valid, jnp.inf, 0.0).astype(jnp.float32)  # padding never hits
-    hits = closest_hit(structure, origins, directions, kernel=static.kernel, tmax=tmax)
+    hits, status = query_status(structure, origins, directions, tmax=tmax,
+                                kernel=static.kernel, any_hit=False)
     hit = (hits.triangle >= 0) & valid
     tri = jnp.maximum(hits.triangle, 0)
     corners = scene.faces[tri]
@@ -501,7 +518,6 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
     ng = jnp.where(entering[:, None], ng_out, -ng_out)  # facing the ray
     ns_out = _normalise((b * scene.normals[tri]).sum(axis=1))  # corner normals at b
     ns = jnp.where(entering[:, None], ns_out, -ns_out)
-    shading_ok = dot(directions, ns) < 0
     mat = scene.material[tri]
     kind = jnp.where(hit, scene.kind[mat], MISS)
 
@@ -509,14 +525,14 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
     shadow_count = jnp.zeros((), jnp.int32)
     if static.sky:
         w = jnp.clip((1 - directions[:, 1]) / 2, 0, 1)[:, None]  # as sky_rgb
-        top = _pick(jnp.broadcast_to(scene.sky[0], (n, c)), channels, spectral)
-        bottom = _pick(jnp.broadcast_to(scene.sky[1], (n, c)), channels, spectral)
+        top = _pick(jnp.broadcast_to(scene.sky[0], (n, c)), channels, per_ray)
+        bottom = _pick(jnp.broadcast_to(scene.sky[1], (n, c)), channels, per_ray)
         background = top * (1 - w) + bottom * w
         contrib = contrib + jnp.where((valid & ~hit)[:, None], weights * background, 0.0)
 
     if f.diffuse:
         is_diffuse = kind == KIND_CODES["diffuse"]
-        albedo = _pick(scene.albedo[mat], channels, spectral)
+        albedo = _pick(scene.albedo[mat], channels, per_ray)
         ambient = scene.ambient
         if f.lamps:
             n_lamps = f.lamps
@@ -534,28 +550,70 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
             dist = jnp.sqrt(dot(seg, seg))
             s_dir = seg / jnp.maximum(dist, 1e-30)[..., None]
             s_tmax = jnp.where(need, dist, 0.0)
-            blocked = occluded(structure, start.reshape(-1, 3), s_dir.reshape(-1, 3),
-                               tmax=s_tmax.reshape(-1), kernel=static.kernel).reshape(n, n_lamps)
-            visible = need & ~blocked
+            blocked, shadow_status = query_status(
+                structure, start.reshape(-1, 3), s_dir.reshape(-1, 3),
+                tmax=s_tmax.reshape(-1), kernel=static.kernel, any_hit=True)
+            status = status | shadow_status
+            visible = need & ~blocked.reshape(n, n_lamps)
             shadow_count = need.sum(dtype=jnp.int32)
             shade = ambient + (1 - ambient) * cos * visible  # [N, L]
-            if spectral:
+            if per_ray:
                 lamp = scene.lamp_radiance.T[channels]  # [N, L]
                 light = (lamp * shade).sum(axis=1, keepdims=True)  # [N, 1]
             else:  # Σ_l shade_l lamp_l, written out (no reduced-precision matmul)
                 light = (shade[:, :, None] * scene.lamp_radiance[None, :, :]).sum(axis=1)
         else:
             light = ambient * _pick(jnp.broadcast_to(scene.illuminant, (n, c)), channels,
-                                    spectral)
+                                    per_ray)
         contrib = contrib + jnp.where(is_diffuse[:, None], weights * albedo * light, 0.0)
 
-    zeros3 = jnp.zeros((n, 3), jnp.float32)
     if not (f.mirror or f.dielectric):
+        zeros3 = jnp.zeros((n, 1, 3), jnp.float32)
         empty = jnp.zeros((n, 1), bool)
         return _ChunkOut(contrib, kind, jnp.zeros((n,), bool), hits.triangle, hits.t,
-                         zeros3[:, None], zeros3[:, None], jnp.zeros((n, 1, k), jnp.float32),
-                         empty, shadow_count)
+                         zeros3, zeros3, jnp.zeros((n, 1, 1 if spectral else k), jnp.float32),
+                         empty, jnp.zeros((n, 1), jnp.int32), shadow_count, status)
 
+    if static.bundle:
+        # A bundle's wavelength samples part here: each goes on as its own ray (the
+        # directions of a dispersive refraction and every Fresnel and mirror weight depend
+        # on the wavelength). The children of its C samples are those of C rays of one
+        # sample each at this same hit, wavelength-major: the host tree's order.
+        def each(a):
+            return jnp.repeat(a, c, axis=0)
+
+        split = jnp.tile(jnp.arange(c, dtype=jnp.int32), n)
+        dirs, wts, alive, tir = _children(
+            static, scene, each(directions), each(ns), each(ng), each(entering), each(kind),
+            each(mat),
+            weights.reshape(n * c, 1), split, key)
+        slots = dirs.shape[1]
+        child_channels = jnp.broadcast_to(split[:, None], (n * c, slots)).reshape(n, c * slots)
+        dirs = dirs.reshape(n, c * slots, 3)
+        wts = wts.reshape(n, c * slots, 1)
+        alive = alive.reshape(n, c * slots)
+        tir = tir.reshape(n, c).any(axis=1)
+    else:
+        dirs, wts, alive, tir = _children(static, scene, directions, ns, ng, entering, kind, mat,
+                                          weights, channels, key)
+        child_channels = jnp.broadcast_to(channels[:, None], alive.shape)
+    shape = dirs.shape
+    starts = offset_origin(jnp.broadcast_to(point[:, None, :], shape),
+                            jnp.broadcast_to(error[:, None, :], shape),
+                            jnp.broadcast_to(ng[:, None, :], shape), dirs)
+    return _ChunkOut(contrib, kind, tir, hits.triangle, hits.t, starts, dirs, wts, alive,
+                     child_channels, shadow_count, status)
+
+
+def _children(static: _Static, scene: SceneArrays, directions, ns, ng, entering, kind, mat,
+              weights, channels, key):
+    """The reflected and refracted children of rays that each carry one wavelength sample
+    (spectral) or RGB weights: directions [N, B, 3], weights [N, B, K], alive [N, B] (a
+    child of zero weight is not alive) and total internal reflection [N]."""
+    f = static.features
+    spectral = f.dispersion
+    n, k = weights.shape
+    shading_ok = dot(directions, ns) < 0
     # Seed eq. (2). With the shading normal unless it would send the ray below the
     # geometric surface (or faces away from the ray); then with the geometric normal.
     r_s = optics.reflect(directions, ns)
@@ -604,12 +662,7 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
     dirs = jnp.stack(child_d, axis=1)  # [N, B, 3]
     wts = jnp.stack(child_w, axis=1)  # [N, B, K]
     alive = jnp.stack(alive, axis=1) & (wts.max(axis=2) > 0)
-    shape = dirs.shape
-    starts = offset_origin(jnp.broadcast_to(point[:, None, :], shape),
-                            jnp.broadcast_to(error[:, None, :], shape),
-                            jnp.broadcast_to(ng[:, None, :], shape), dirs)
-    return _ChunkOut(contrib, kind, tir, hits.triangle, hits.t, starts, dirs, wts, alive,
-                     shadow_count)
+    return dirs, wts, alive, tir
 
 
 # --------------------------------------------------------------------------------------------
@@ -698,6 +751,7 @@ def shade_level(
     for index, start in enumerate(range(0, len(rays), chunk)):
         args, m = _chunk_args(setup, rays, start, chunk, jax.random.fold_in(key, index))
         out = _executable(args, static, timing)(*args)
+        raise_on_status(out.status)
         parts.append(_ChunkOut(*(np.asarray(x)[:m] if np.ndim(x) else int(x) for x in out)))
     return level_from_chunks(parts, rays, setup.ray_channels)
 
@@ -710,13 +764,16 @@ def level_from_chunks(parts: list, rays: Rays, k: int) -> Level:
         return Level(np.zeros((0, k), np.float32), np.zeros(0, np.int32), np.zeros(0, bool),
                      np.zeros(0, np.int32), np.zeros(0, np.float32), _empty_rays(k),
                      np.zeros(0, np.int32), 0)
-    out = _ChunkOut(*(np.concatenate(x) if i < 9 else sum(x)
+    arrays = len(_ChunkOut._fields) - 2  # then shadow_rays (summed), status (ORed)
+    out = _ChunkOut(*(np.concatenate(x) if i < arrays else
+                      (sum(x) if i == arrays else functools.reduce(np.bitwise_or, x))
                       for i, x in enumerate(zip(*parts, strict=True))))
     parent, slot = np.nonzero(out.child_alive)
     children = Rays(
         origins=out.child_origins[parent, slot], directions=out.child_directions[parent, slot],
         weights=out.child_weights[parent, slot], pixels=rays.pixels[parent],
-        channels=rays.channels[parent], sources=out.triangles[parent].astype(np.int32))
+        channels=out.child_channels[parent, slot],
+        sources=out.triangles[parent].astype(np.int32))
     return Level(out.contributions, out.kinds, out.tir, out.triangles, out.t, children,
                  parent.astype(np.int32), int(out.shadow_rays))
 
@@ -727,19 +784,32 @@ def _empty_rays(k: int) -> Rays:
                 np.zeros(0, np.int32))
 
 
-def camera_level(setup: RenderSetup, camera: Camera, spp: int = 1) -> Rays:
-    """Level 0: one ray per pixel centre (seed Théorème 2.2, from the eye), replicated per
-    wavelength sample in spectral mode and ``spp`` times, pixel-major."""
-    origins, directions = (np.asarray(a) for a in camera_rays(camera))
+def camera_level(setup: RenderSetup, camera: Camera, spp: int = 1, *, mode: str = "tree",
+                 bundles: bool = False) -> Rays:
+    """Level 0, from the eye (seed Théorème 2.2), pixel-major: ``spp`` rays per pixel, in
+    the tree through its :func:`jrt.camera.subpixel_offsets` (stratified anti-aliasing; 1:
+    the centre), in the sampled mode all through its centre (``spp`` paths). In spectral mode
+    each is replicated per wavelength sample (weights [N, 1]), or with ``bundles`` carries
+    them all (weights [N, C], split at the first surface that spawns children)."""
+    _check_mode(mode)
+    subpixel = spp if mode == "tree" else 1
+    origins, directions = (np.asarray(a) for a in camera_rays(camera, subpixel))
     pixels = camera.num_rays
-    copies = (setup.channels if setup.spectral else 1) * spp
-    index = np.repeat(np.arange(pixels, dtype=np.int32), copies)
-    channels = (np.tile(np.arange(setup.channels, dtype=np.int32), pixels * spp)
-                if setup.spectral else np.zeros(index.shape, np.int32))
+    rays = np.repeat(np.arange(pixels * subpixel), spp // subpixel)  # [P * spp]
+    pixel = np.repeat(np.arange(pixels, dtype=np.int32), spp)
+    if not setup.spectral or bundles:
+        k = setup.channels if setup.spectral else 3
+        return Rays(origins=origins[rays], directions=directions[rays],
+                    weights=np.ones((rays.size, k), np.float32), pixels=pixel,
+                    channels=np.zeros(rays.size, np.int32),
+                    sources=np.full(rays.size, -1, np.int32))
+    c = setup.channels
+    index = np.repeat(rays, c)
     return Rays(
         origins=origins[index], directions=directions[index],
-        weights=np.ones((index.size, setup.ray_channels), np.float32), pixels=index,
-        channels=channels, sources=np.full(index.shape, -1, np.int32))
+        weights=np.ones((index.size, 1), np.float32), pixels=np.repeat(pixel, c),
+        channels=np.tile(np.arange(c, dtype=np.int32), pixels * spp),
+        sources=np.full(index.shape, -1, np.int32))
 
 
 def _accumulate(radiance: np.ndarray, rays: Rays, contributions: np.ndarray,
@@ -770,8 +840,6 @@ def render_arguments(
     _check_mode(mode)
     if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
         raise ValueError(f"spp must be a positive integer, got {spp!r}")
-    if mode == "tree" and spp != 1:
-        raise ValueError("spp > 1 is for mode='sampled' (the tree is deterministic)")
     setup = (scene_or_setup if isinstance(scene_or_setup, RenderSetup)
              else prepare(scene_or_setup, features=features, samples=samples))
     setup = _with(setup, samples, features)
@@ -794,16 +862,57 @@ def render_radiance(
     mode: str = "tree",
     spp: int = 1,
     key: Array | None = None,
+    features: Features | None = None,
+    threshold: float | None = None,
+) -> tuple[Float[np.ndarray, "h w c"], RenderStats]:
+    """Linear radiance per pixel and channel (see :func:`render_scene` for the arguments):
+    float64 ``[H, W, C]`` in the :mod:`jrt.spectral` convention (C wavelength samples, or
+    linear sRGB), and the :class:`RenderStats`.
+
+    The scene's :func:`renderer` (every level in one compiled program), remembered for the
+    setup: a second call with the same options compiles and guesses nothing."""
+    from jrt import wavefront
+
+    setup = (scene_or_setup if isinstance(scene_or_setup, RenderSetup)
+             else prepare(scene_or_setup, features=features, samples=samples))
+    setup = _with(setup, samples, features)
+    render = wavefront.cached_renderer(
+        setup, width=width, height=height, max_depth=max_depth, spp=spp, mode=mode,
+        threshold=threshold)
+    radiance = render(None, key)
+    return np.asarray(radiance, np.float64), render.last_stats
+
+
+def renderer(scene: RenderSetup | Scene | str | Path, **options):
+    """``(render, params)``: the scene's render as a pure function of its parameters,
+    :func:`jrt.wavefront.renderer` (the arguments are documented there)."""
+    from jrt import wavefront
+
+    return wavefront.renderer(scene, **options)
+
+
+def host_radiance(
+    scene_or_setup: RenderSetup | Scene | str | Path,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    max_depth: int | None = None,
+    samples: int | None = None,
+    mode: str = "tree",
+    spp: int = 1,
+    key: Array | None = None,
     chunk: int = CHUNK,
     features: Features | None = None,
     threshold: float | None = None,
     by_depth: bool = False,
 ) -> tuple[Float[np.ndarray, "h w c"] | Float[np.ndarray, "d h w c"], RenderStats]:
-    """Linear radiance per pixel and channel (see :func:`render_scene` for the arguments).
+    """The reference tree, stepped level by level from the host (NumPy compaction and
+    accumulation in float64 between levels, every camera ray per wavelength sample): what
+    :func:`render_radiance` computes, by an independent route, and the tests compare it
+    with. Slower (one device round trip per level and per ``chunk`` rays).
 
-    Returns float64 ``[H, W, C]`` in the :mod:`jrt.spectral` convention (C wavelength
-    samples, or linear sRGB), or with ``by_depth`` ``[D, H, W, C]``: entry ``d`` the image
-    rendered at depth ``d + 1`` (levels ``0..d``), and the :class:`RenderStats`.
+    Returns float64 ``[H, W, C]``, or with ``by_depth`` ``[D, H, W, C]``: entry ``d`` the
+    image rendered at depth ``d + 1`` (levels ``0..d``), and the :class:`RenderStats`.
     """
     start = time.perf_counter()
     chunk = _check_chunk(chunk)
@@ -814,7 +923,7 @@ def render_radiance(
     if key is None:
         key = jax.random.PRNGKey(0)
     timing: dict = {}
-    rays = camera_level(setup, camera, spp)
+    rays = camera_level(setup, camera, spp, mode=mode)
     camera_rays_count = len(rays)
     pixels, c = camera.num_rays, setup.channels
     radiance = np.zeros((pixels, c), np.float64)
@@ -876,7 +985,6 @@ def render_scene(
     mode: str = "tree",
     spp: int = 1,
     key: Array | None = None,
-    chunk: int = CHUNK,
     features: Features | None = None,
     threshold: float | None = None,
 ) -> tuple[Float[np.ndarray, "h w 3"], RenderStats]:
@@ -890,9 +998,10 @@ def render_scene(
         samples: wavelength samples in spectral mode; default the scene's settings.
         mode: ``"tree"`` (every branch, Fresnel-weighted) or ``"sampled"`` (one branch per
             dielectric hit, reflected with probability R).
-        spp: paths per pixel (and wavelength), sampled mode only.
+        spp: camera rays per pixel: in the tree at stratified sub-pixel positions
+            (:func:`jrt.camera.subpixel_offsets`: anti-aliasing), in the sampled mode
+            paths through the pixel's centre.
         key: ``jax.random`` key for the sampled mode (default ``PRNGKey(0)``).
-        chunk: rays per call of the compiled level function.
         features: force what gets compiled (default: the scene's own features).
         threshold: pruning threshold on a ray's weight; default the scene's settings.
 
@@ -905,7 +1014,7 @@ def render_scene(
     setup = _with(setup, samples, features)
     radiance, stats = render_radiance(
         setup, width=width, height=height, max_depth=max_depth, mode=mode, spp=spp, key=key,
-        chunk=chunk, threshold=threshold)
+        threshold=threshold)
     start = time.perf_counter()
     image = to_srgb(radiance, setup)
     return image, dataclasses.replace(stats, seconds=stats.seconds + time.perf_counter() - start)
@@ -931,9 +1040,11 @@ __all__ = [
     "SceneArrays",
     "camera_level",
     "chunk_program",
+    "host_radiance",
     "prepare",
     "render_arguments",
     "render_radiance",
+    "renderer",
     "render_scene",
     "shade_level",
     "sky_rgb",

@@ -1250,17 +1250,17 @@ def section_turntable(doc: Doc, b: Bench) -> bool:
     doc.heading(3, "Batched renders" + (f": {b.label}" if b.label else ""))
     doc.para(_section_mark(b)
              + "A turntable of the glass camel rendered as one batch (`jrt.batch.render_batch`: "
-             "one `jax.vmap` of the renderer's level function over the cameras) and as a "
-             "Python loop of single renders (`jrt.whitted`), with the library's default "
-             "chunk and with the batch's chunk; the ratio is the batch's images/s over the "
+             "one `jax.vmap` of the pure renderer over the cameras) and as a Python loop of "
+             "single renders (`jrt.wavefront.renderer`), at the renderer's own level "
+             "capacities and at the batch's; the ratio is the batch's images/s over the "
              "faster loop's. The difference is the largest radiance difference between the "
-             f"batch and the same-chunk loop. Data: `{b.command}`.")
+             f"batch and the same-capacities loop. Data: `{b.command}`.")
     doc.table(["frames", "size", "wavelengths", "depth", "batched images/s", "loop",
-               "loop, same chunk", "x faster loop", "max difference"],
+               "loop, same capacities", "x faster loop", "max difference"],
               [[num(r.get("frames")), f"{r.get('width')}x{r.get('height')}",
                 num(r.get("samples")), num(r.get("max_depth")),
                 num(r.get("batched_images_per_s")), num(r.get("loop_images_per_s")),
-                num(r.get("loop_same_chunk_images_per_s")), num(r.get("ratio")),
+                num(r.get("loop_same_capacities_images_per_s")), num(r.get("ratio")),
                 num(r.get("max_abs_difference"))] for r in recs])
     return True
 

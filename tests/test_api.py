@@ -306,6 +306,31 @@ def test_the_readme_example_runs_and_matches_brute_force():
     assert 0.1 < fraction < 0.9, out.stdout  # the example's rays meet the camel, not all
 
 
+def test_the_readme_render_example_runs_and_matches_the_host_tree():
+    """The README's renderer example, as printed, in a fresh interpreter: its image equals
+    the host-stepped reference tree's, and each vmapped item its own single render."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```python\n(.*?)```", readme, flags=re.S)
+    example = next(b for b in blocks if "whitted.renderer(" in b)
+    check = """
+        import numpy as _np
+        _want, _ = whitted.host_radiance(render.setup, width=96, height=72, max_depth=3,
+                                         spp=4)
+        _peak = _np.abs(_want).max()
+        _np.testing.assert_allclose(_np.asarray(radiance), _want, rtol=1e-5,
+                                    atol=1e-5 * _peak)
+        assert image.shape == (72, 96, 3)
+        for _item, _params in zip(_np.asarray(images), variants):
+            _single = _np.asarray(render(_params))
+            _np.testing.assert_allclose(_item, _single, rtol=1e-5, atol=1e-5 * _peak)
+        print("CHANGE", float(_np.abs(_np.asarray(images[1]) - _np.asarray(images[0])).max()
+                              / _peak))
+    """
+    out = _python(example + textwrap.dedent(check))
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert float(out.stdout.split("CHANGE")[1]) > 0.01, out.stdout  # A moved the image
+
+
 # ------------------------------------------------------------------------ import order
 
 

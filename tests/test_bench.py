@@ -134,7 +134,7 @@ def test_turntable_batched_against_the_loop(results):
     ratio is the batch's rate over the faster loop's."""
     (rec,) = _records(results, "turntable")
     assert rec["frames"] == 2 and rec["batch_devices"] == len(jax.local_devices())
-    best = max(rec["loop_images_per_s"], rec["loop_same_chunk_images_per_s"])
+    best = max(rec["loop_images_per_s"], rec["loop_same_capacities_images_per_s"])
     assert rec["ratio"] == pytest.approx(rec["batched_images_per_s"] / best)
     assert rec["peak_radiance"] > 0
     # Float32 rounding of the shading compiled for another shape (tests/test_batch.py's

@@ -8,6 +8,7 @@ TOML files written into tmp_path with box meshes from trimesh; the camel scenes 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import jax
@@ -16,7 +17,7 @@ import pytest
 import trimesh
 from skimage import io
 
-from jrt import optics, whitted
+from jrt import optics, wavefront, whitted
 from jrt.cli import main
 from jrt.render import SKY_BOTTOM, SKY_TOP
 from jrt.scene import BUILTIN_SCENES, builtin_toml, parse_scene
@@ -78,13 +79,14 @@ def test_opaque_scene_compiles_no_optics_and_matches_the_general_path(monkeypatc
         for name in ("refract", "fresnel", "fresnel_sp", "cauchy", "reflect",
                      "interface_indices"):
             m.setattr(optics, name, boom)
-        m.setattr(whitted, "_COMPILED", {})
+        m.setattr(wavefront, "_COMPILED", {})  # the renderer's programs and renderers
+        m.setattr(wavefront, "_RENDERERS", collections.OrderedDict())
         jax.clear_caches()  # trace afresh, with the raising optics
-        image, stats = whitted.render_scene(setup, width=48, height=36, chunk=CHUNK)
+        image, stats = whitted.render_scene(setup, width=48, height=36)
     assert stats.channels == 3 and stats.mode == "tree"
     assert stats.rays_per_level == (48 * 36,) and stats.shadow_rays > 0
 
-    forced, forced_stats = whitted.render_scene(setup, width=48, height=36, chunk=CHUNK,
+    forced, forced_stats = whitted.render_scene(setup, width=48, height=36,
                                                 features=general)
     assert forced_stats.channels == 3
     np.testing.assert_allclose(forced, image, atol=1e-6)
@@ -94,8 +96,12 @@ def test_opaque_scene_compiles_no_optics_and_matches_the_general_path(monkeypatc
 
 def test_dispersion_decides_the_channels(glass19k):
     assert glass19k.features.dispersion and glass19k.spectral
-    _, stats = whitted.render_scene(glass19k, width=16, height=12, max_depth=2, chunk=CHUNK)
-    assert stats.channels == 4 and stats.rays_per_level[0] == 16 * 12 * 4
+    _, stats = whitted.render_scene(glass19k, width=16, height=12, max_depth=2)
+    # One camera ray per pixel carries the 4 samples; the host tree traces one per sample.
+    assert stats.channels == 4 and stats.rays_per_level[0] == 16 * 12
+    _, host = whitted.host_radiance(glass19k, width=16, height=12, max_depth=2)
+    assert host.channels == 4 and host.rays_per_level[0] == 16 * 12 * 4
+    assert stats.rays_per_level[1] == host.rays_per_level[1]  # they part at the glass
 
 
 # --------------------------------------------------------------------------- closed forms
@@ -179,7 +185,18 @@ def synthetic(tmp_path_factory):
     return setup
 
 
-def test_slab_at_normal_incidence_transmits_t_squared(synthetic):
+#: The two routes to a tree's image: the renderer (every level on the device, spectral camera
+#: rays as bundles of every wavelength sample) and the host-stepped reference; the analytic
+#: values below hold for both. Value: (radiance function, camera rays per pixel and
+#: wavelength sample in rays_per_level[0]: a bundle counts once).
+TREES = {
+    "device": (lambda setup, **kw: whitted.render_radiance(setup, **kw), "bundles"),
+    "host": (lambda setup, **kw: whitted.host_radiance(setup, chunk=CHUNK, **kw), "rays"),
+}
+
+
+@pytest.mark.parametrize("tree", TREES)
+def test_slab_at_normal_incidence_transmits_t_squared(synthetic, tree):
     """Centre pixel through the BK7 slab, along -z: the transmitted light is T² of the sky
     behind it (depth 3: in, out, seen), T = 1 - ((n - 1)/(n + 1))² per wavelength; the
     reflections go back to the black wall. Deep, the internal reflections add up to
@@ -193,17 +210,21 @@ def test_slab_at_normal_incidence_transmits_t_squared(synthetic):
     direction = np.array([0.0, 0.0, -1.0])
     sky = (np.asarray(rgb_to_reflectance(sky_rgb(direction), setup.tables), np.float64)
            * np.asarray(setup.tables.illuminant, np.float64))
-    radiance, stats = whitted.render_radiance(setup, chunk=CHUNK)
+    radiance_of, camera = TREES[tree]
+    radiance, stats = radiance_of(setup)
     centre = radiance[4, 4]
     np.testing.assert_allclose(centre, t**2 * sky, rtol=1e-4)
-    assert stats.rays_per_level[0] == 81 * 8 and stats.truncated_weight > 0
+    assert stats.rays_per_level[0] == 81 * (1 if camera == "bundles" else 8)
+    assert stats.rays_per_level[1] == 81 * 8 * 2  # each sample: reflected, refracted
+    assert stats.truncated_weight > 0
 
-    deep, _ = whitted.render_radiance(setup, max_depth=16, chunk=CHUNK)
+    deep, _ = radiance_of(setup, max_depth=16)
     np.testing.assert_allclose(deep[4, 4], (1 - r) / (1 + r) * sky, rtol=1e-4)
     assert np.all(deep[4, 4] > centre * (1 + 0.5 * r**2))  # the second pass is there
 
 
-def test_schlick_is_an_option_of_the_scene(synthetic):
+@pytest.mark.parametrize("tree", TREES)
+def test_schlick_is_an_option_of_the_scene(synthetic, tree):
     """settings.fresnel = "schlick": Schlick's R equals R0 = ((n-1)/(n+1))² at normal
     incidence, so the slab's centre pixel is the same T² of the sky; at the slab's edges
     (oblique incidence through the 10° view) the two models differ, by less than Schlick's
@@ -211,8 +232,9 @@ def test_schlick_is_an_option_of_the_scene(synthetic):
     exact = synthetic(eye=(0, 0, 5), target=(0, 0, 0), depth=3)
     settings = dataclasses.replace(exact.scene.settings, fresnel="schlick")
     schlick = whitted.prepare(dataclasses.replace(exact.scene, settings=settings))
-    want, _ = whitted.render_radiance(exact, chunk=CHUNK)
-    got, _ = whitted.render_radiance(schlick, chunk=CHUNK)
+    radiance_of, _ = TREES[tree]
+    want, _ = radiance_of(exact)
+    got, _ = radiance_of(schlick)
     np.testing.assert_allclose(got[4, 4], want[4, 4], rtol=1e-5)
     scale = np.abs(want).max()
     assert np.abs(got - want).max() > 0  # a different model was compiled
@@ -233,7 +255,7 @@ def test_mirror_reflects_the_sky_times_its_reflectance(synthetic):
     rho = np.asarray(rgb_to_reflectance(np.array([0.9, 0.5, 0.2]), setup.tables), np.float64)
     sky = (np.asarray(rgb_to_reflectance(sky_rgb(directions), setup.tables), np.float64)
            * np.asarray(setup.tables.illuminant, np.float64))
-    radiance, _ = whitted.render_radiance(setup, chunk=CHUNK)
+    radiance, _ = whitted.host_radiance(setup, chunk=CHUNK)
     radiance = radiance.reshape(size * size, -1)
     np.testing.assert_allclose(radiance[upper], rho * sky[upper], rtol=1e-4, atol=1e-7)
     # Around the plate the camera sees the black wall: nothing.
@@ -241,13 +263,16 @@ def test_mirror_reflects_the_sky_times_its_reflectance(synthetic):
     assert wall.sum() > 0 and np.all(radiance[wall] == 0)
 
 
-def test_white_floor_under_a_d65_lamp_is_white(synthetic):
+@pytest.mark.parametrize("tree", TREES)
+def test_white_floor_under_a_d65_lamp_is_white(synthetic, tree):
     """Looking straight down at the floor right under the lamp: n·l = 1, a white albedo, a
     D65 lamp of intensity 1: Y = 1 and R = G = B (white) after encoding, in spectral mode."""
     setup = synthetic(eye=(0, -10, -10), target=(0, -25, -10), up=(0, 0, -1), depth=2)
     assert setup.spectral
-    radiance, stats = whitted.render_radiance(setup, chunk=CHUNK)
-    assert stats.shadow_rays == 81 * 8  # every pixel sees the lit floor
+    radiance_of, camera = TREES[tree]
+    radiance, stats = radiance_of(setup)
+    # every pixel sees the lit floor (a bundle casts one shadow ray for its samples)
+    assert stats.shadow_rays == 81 * (1 if camera == "bundles" else 8)
     xyz = np.asarray(spectrum_to_xyz(radiance[4, 4].astype(np.float32), setup.tables))
     assert abs(xyz[1] - 1) < 1e-4
     image = whitted.to_srgb(radiance, setup)
@@ -283,7 +308,7 @@ def test_dielectric_conserves_weight(glass19k):
 
 
 def test_depth_converges(glass19k):
-    images, stats = whitted.render_radiance(glass19k, width=32, height=24, max_depth=8,
+    images, stats = whitted.host_radiance(glass19k, width=32, height=24, max_depth=8,
                                             chunk=CHUNK, by_depth=True)
     encoded = whitted.to_srgb(images, glass19k)
     diffs = [float(np.abs(encoded[d + 1] - encoded[d]).mean()) for d in range(7)]
@@ -293,7 +318,7 @@ def test_depth_converges(glass19k):
     assert diffs[-1] < diffs[0] / 4
     assert all(r <= 2**d for d, r in enumerate(stats.rays_per_pixel_by_depth))
     # A render at depth 3 is levels 0..2 of the deeper one.
-    three, _ = whitted.render_radiance(glass19k, width=32, height=24, max_depth=3,
+    three, _ = whitted.host_radiance(glass19k, width=32, height=24, max_depth=3,
                                        chunk=CHUNK)
     np.testing.assert_allclose(three, images[2], rtol=1e-6, atol=1e-9)
 
@@ -307,7 +332,7 @@ def test_dispersion_adds_colour(glass19k):
     flat = whitted.prepare(camel_scene(**{'glass = "BK7"': f"cauchy = [{A}, 0.0]"}),
                            features=glass19k.features, samples=4)
     assert flat.spectral and flat.channels == glass19k.channels
-    size = dict(width=32, height=24, max_depth=4, chunk=CHUNK)
+    size = dict(width=32, height=24, max_depth=4)
     dispersed, _ = whitted.render_scene(glass19k, **size)
     plain, _ = whitted.render_scene(flat, **size)
     on_camel = primary_kinds(flat, 32, 24) == whitted.KIND_CODES["dielectric"]
@@ -354,10 +379,10 @@ def test_secondary_rays_leave_their_surface(glass19k, scale):
 
 def test_sampled_mode_converges_to_the_tree(glass19k):
     size = dict(width=24, height=18, max_depth=4, chunk=CHUNK, threshold=0.0)
-    tree, tree_stats = whitted.render_radiance(glass19k, **size)
+    tree, tree_stats = whitted.host_radiance(glass19k, **size)
     errors = []
     for spp in (2, 8, 32):
-        sampled, stats = whitted.render_radiance(glass19k, mode="sampled", spp=spp,
+        sampled, stats = whitted.host_radiance(glass19k, mode="sampled", spp=spp,
                                                  key=jax.random.PRNGKey(spp), **size)
         # A path never branches: each level has at most the rays of the level before.
         levels = stats.rays_per_level
@@ -376,8 +401,8 @@ def test_every_structure_gives_the_same_image(glass19k):
                                                                        accel=name))
         setup = glass19k if name == "bvh" else whitted.prepare(scene, samples=4)
         assert setup.structure.kind == name
-        images[name], _ = whitted.render_scene(setup, width=24, height=18, max_depth=3,
-                                               chunk=CHUNK)
+        # The host tree: a smaller program to compile per structure, the same traversals.
+        images[name], _ = whitted.host_radiance(setup, width=24, height=18, max_depth=3)
     np.testing.assert_array_equal(images["grid"], images["bvh"])
     np.testing.assert_array_equal(images["kdtree"], images["bvh"])
 

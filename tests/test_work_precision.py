@@ -42,7 +42,7 @@ def result(tmp_path_factory, monkeypatch_module):
     out = tmp_path_factory.mktemp("wp") / "wp.json"
     monkeypatch_module.setattr(wp, "plan", _tiny_plan)
     assert wp.main(["--quick", "--width", str(WIDTH), "--height", str(HEIGHT),
-                    "--chunk", "4096", "--no-progress", "-o", str(out)]) == 0
+                    "--no-progress", "-o", str(out)]) == 0
     return out, json.loads(out.read_text())
 
 

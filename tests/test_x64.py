@@ -87,12 +87,9 @@ for kind in accel.NAMES:
 
 toml = builtin_toml("glass-camel").replace('mesh = "camel"', 'mesh = "camel-19k"')
 setup = whitted.prepare(parse_scene(toml, source="glass-camel-19k"), samples=4)
-for mode in whitted.MODES:
-    level = whitted.camera_level(setup, setup.camera(4, 4))
-    args, _ = whitted._chunk_args(setup, level, 0, 1024, jax.random.PRNGKey(0))
-    fn = functools.partial(whitted._shade_chunk.__wrapped__,
-                           static=whitted._static(setup, mode))
-    wide(jax.make_jaxpr(fn)(*args).jaxpr, found, f"whitted {mode}")
+for mode in whitted.MODES:  # the renderer's whole program, every level
+    render, params = whitted.renderer(setup, width=4, height=4, max_depth=2, mode=mode)
+    wide(jax.make_jaxpr(render.trace)(params).jaxpr, found, f"whitted {mode}")
 image, _ = whitted.render_scene(setup, width=32, height=24, max_depth=2)
 arrays["image"] = image
 cameras = batch.turntable(setup, 2, width=32, height=24)
