@@ -45,10 +45,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jrt.camera import _pinhole
-from jrt.render import SKY_BOTTOM, SKY_TOP
+from jrt.camera import _pinhole, subpixel_offsets
 from jrt.spectral import SpectralTables, rgb_to_reflectance
-from jrt.whitted import KIND_CODES, RenderSetup, SceneArrays, _lamp_channels
+from jrt.whitted import RenderSetup, SceneArrays, _lamp_channels
 
 #: The nested dict described in the module's docstring (leaves: float arrays).
 Params = dict[str, Any]
@@ -116,19 +115,12 @@ def scene_constants(setup: RenderSetup) -> SceneConstants:
     # Y = 1 per lamp (jrt.whitted._lamp_channels), so intensity scales the luminance.
     spectra = np.asarray([_lamp_channels(lamp.spectrum, tables, setup.spectral)
                           for lamp in geometry.lamps], np.float64).reshape(-1, c)
-    # The sky's two ends as reflectances lit by the illuminant, as jrt.whitted computes it.
-    ends = np.asarray([SKY_TOP, SKY_BOTTOM], np.float32)
-    sky = (np.asarray(rgb_to_reflectance(ends, tables), np.float64)
-           * np.asarray(tables.illuminant, np.float64))
-    if setup.scene.settings.background == "black":
-        sky = np.zeros_like(sky)
+    arrays = setup.arrays  # what prepare put on the device already: shared, not copied
     return SceneConstants(
-        vertices=_f32(geometry.vertices), faces=jnp.asarray(geometry.faces, jnp.int32),
-        normals=_f32(geometry.normals),
-        material=jnp.asarray(geometry.material_of_face, jnp.int32),
-        kind=jnp.asarray([KIND_CODES[mat.kind] for mat in geometry.materials], jnp.int32),
+        vertices=arrays.vertices, faces=arrays.faces, normals=arrays.normals,
+        material=arrays.material, kind=arrays.kind,
         material_rank=jnp.asarray([rank[name] for name in names], jnp.int32),
-        lamp_spectra=_f32(spectra), sky=_f32(sky), tables=tables,
+        lamp_spectra=_f32(spectra), sky=arrays.sky, tables=tables,
     )
 
 
@@ -190,15 +182,16 @@ def scene_arrays(params: Params, constants: SceneConstants) -> SceneArrays:
 
 
 def camera_from_parameters(
-    camera_params: dict[str, Float[Array, "*dims"]], width: int, height: int
+    camera_params: dict[str, Float[Array, "*dims"]], width: int, height: int, spp: int = 1
 ) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
-    """Origins and unit directions, float32 [height * width, 3], of the pinhole camera
+    """Origins and unit directions, float32 [height * width * spp, 3], of the pinhole camera
     ``params["camera"]``: :func:`jrt.camera.camera_rays`'s rays, bit for bit (the same
-    float32 program, ``vfov`` in degrees turned to radians inside it), and differentiable
-    in every entry."""
+    float32 program, ``vfov`` in degrees turned to radians inside it; ``spp`` rays through
+    each pixel's :func:`jrt.camera.subpixel_offsets`), and differentiable in every entry."""
     return _pinhole(_f32(camera_params["eye"]), _f32(camera_params["target"]),
                     _f32(camera_params["up"]), _f32(camera_params["vfov"]),
-                    width=int(width), height=int(height))
+                    width=int(width), height=int(height),
+                    offsets=None if spp == 1 else jnp.asarray(subpixel_offsets(spp)))
 
 
 def _dtype(leaf) -> np.dtype:

@@ -66,8 +66,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jrt.camera import _pinhole, subpixel_offsets
-from jrt.params import check_parameters, scene_arrays, scene_constants, scene_parameters
+from jrt.params import (
+    camera_from_parameters,
+    check_parameters,
+    scene_arrays,
+    scene_constants,
+    scene_parameters,
+)
 from jrt.scene import Scene
 from jrt.trace import bucket_size, raise_on_status
 from jrt.whitted import (
@@ -78,6 +83,7 @@ from jrt.whitted import (
     _shade_chunk,
     _Static,
     _static,
+    compiled_program,
     render_arguments,
 )
 
@@ -381,17 +387,12 @@ class _Shape(NamedTuple):
 
 
 def _camera_rays(camera_params, shape: _Shape):
-    """The camera rays of ``params["camera"]``: :func:`jrt.camera._pinhole`, the program
-    :func:`jrt.camera_rays` runs (called outside the tree's program, it is that very
-    program: the rays agree bit for bit with the host's, which matters, as a glass tree
-    turns one ulp of a camera ray into another path)."""
-    offsets = (jnp.asarray(subpixel_offsets(shape.spp))
-               if shape.subpixel and shape.spp > 1 else None)  # None: the pixel centres
-    return _pinhole(jnp.asarray(camera_params["eye"], jnp.float32),
-                    jnp.asarray(camera_params["target"], jnp.float32),
-                    jnp.asarray(camera_params["up"], jnp.float32),
-                    jnp.asarray(camera_params["vfov"], jnp.float32),
-                    width=shape.width, height=shape.height, offsets=offsets)
+    """The camera rays of ``params["camera"]`` (:func:`jrt.params.camera_from_parameters`,
+    the program :func:`jrt.camera_rays` runs). Called outside the tree's program, it is
+    that very program: the rays agree bit for bit with the host's, which matters, as a
+    glass tree turns one ulp of a camera ray into another path."""
+    return camera_from_parameters(camera_params, shape.width, shape.height,
+                                  shape.spp if shape.subpixel else 1)
 
 
 def _render_program(params, constants, structure, threshold, key, depth, *, shape: _Shape):
@@ -450,6 +451,8 @@ class Renderer:
         self.params = params
         self.mode = mode
         self.depth = depth
+        with jax.ensure_compile_time_eval():  # a device array, even if made under a trace
+            self._depth = jax.device_put(np.int32(depth))
         self.capacities = capacities  # the later levels: one size
         self.last_stats: RenderStats | None = None
         self._constants = scene_constants(setup)
@@ -492,12 +495,9 @@ class Renderer:
 
     @property
     def depth_argument(self) -> Int[Array, ""]:
-        """The depth as the program takes it (an argument: one program, any depth), put on
-        the device once, outside any trace."""
-        with jax.ensure_compile_time_eval():
-            if getattr(self, "_depth", (None,))[0] != self.depth:
-                self._depth = (self.depth, jax.device_put(np.int32(self.depth)))
-        return self._depth[1]
+        """The depth as the program takes it: an argument, so one program serves any depth
+        (put on the device once, when the renderer is made)."""
+        return self._depth
 
     def trace(self, params, key: Array | None = None):
         """``(radiance [H, W, C], TreeStats)``: the pure function (jit, vmap, grad compose
@@ -526,19 +526,13 @@ class Renderer:
             return radiance
         check_parameters(params, self.params)
         start = time.perf_counter()
-        compile_seconds = 0.0
+        timing: dict = {}
+        rays = _camera_rays(params["camera"], self.shape())  # the capacities do not move them
         for _ in range(MAX_RERENDERS):
             shape = self.shape()
             args = (params, self._constants, self.setup.device_structure, self._threshold,
-                    key, *_camera_rays(params["camera"], shape), self.depth_argument)
-            leaves, treedef = jax.tree.flatten(args)
-            signature = (shape, treedef, tuple((np.shape(x), str(x.dtype)) for x in leaves))
-            program = _COMPILED.get(signature)
-            if program is None:
-                tic = time.perf_counter()
-                program = _tree_program.lower(*args, shape=shape).compile()
-                _COMPILED[signature] = program
-                compile_seconds += time.perf_counter() - tic
+                    key, *rays, self.depth_argument)
+            program = compiled_program(_COMPILED, _tree_program, args, timing, shape=shape)
             self.program = program
             # Explicitly where the program wants them (the engine spreads the rays over
             # every local device): a no-op once they are there, and no implicit transfer.
@@ -553,7 +547,8 @@ class Renderer:
         else:  # pragma: no cover - each pass fixes a level
             raise RuntimeError(f"level capacities still overflow after {MAX_RERENDERS} renders")
         radiance.block_until_ready()
-        self.last_stats = self._stats(stats, time.perf_counter() - start, compile_seconds)
+        self.last_stats = self._stats(stats, time.perf_counter() - start,
+                                      timing.get("compile", 0.0))
         return radiance
 
     def _stats(self, stats: TreeStats, seconds: float, compile_seconds: float) -> RenderStats:

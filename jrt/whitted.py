@@ -714,16 +714,20 @@ def _chunk_args(setup: RenderSetup, rays: Rays, start: int, chunk: int, key):
             jnp.asarray(valid), key), m
 
 
-def _executable(args, static: _Static, timing: dict):
+def compiled_program(cache: dict, fn, args, timing: dict, **static):
+    """``fn`` (a jitted function) lowered and compiled for ``args`` and its static keyword
+    arguments, once per signature (the statics, the arguments' tree, shapes and dtypes) in
+    ``cache``; the seconds spent compiling are added to ``timing["compile"]``. Compiled
+    ahead of time so that a render can say how long it compiled."""
     leaves, treedef = jax.tree.flatten(args)
-    signature = (static, treedef, tuple((np.shape(x), str(x.dtype)) for x in leaves))
-    exe = _COMPILED.get(signature)
-    if exe is None:
+    signature = (fn, tuple(sorted(static.items())), treedef,
+                 tuple((np.shape(x), str(x.dtype)) for x in leaves))
+    program = cache.get(signature)
+    if program is None:
         start = time.perf_counter()
-        exe = _shade_chunk.lower(*args, static=static).compile()
+        program = cache[signature] = fn.lower(*args, **static).compile()
         timing["compile"] = timing.get("compile", 0.0) + time.perf_counter() - start
-        _COMPILED[signature] = exe
-    return exe
+    return program
 
 
 def shade_level(
@@ -750,7 +754,7 @@ def shade_level(
     parts = []
     for index, start in enumerate(range(0, len(rays), chunk)):
         args, m = _chunk_args(setup, rays, start, chunk, jax.random.fold_in(key, index))
-        out = _executable(args, static, timing)(*args)
+        out = compiled_program(_COMPILED, _shade_chunk, args, timing, static=static)(*args)
         raise_on_status(out.status)
         parts.append(_ChunkOut(*(np.asarray(x)[:m] if np.ndim(x) else int(x) for x in out)))
     return level_from_chunks(parts, rays, setup.ray_channels)
@@ -784,31 +788,27 @@ def _empty_rays(k: int) -> Rays:
                 np.zeros(0, np.int32))
 
 
-def camera_level(setup: RenderSetup, camera: Camera, spp: int = 1, *, mode: str = "tree",
-                 bundles: bool = False) -> Rays:
+def camera_level(setup: RenderSetup, camera: Camera, spp: int = 1, *,
+                 mode: str = "tree") -> Rays:
     """Level 0, from the eye (seed Théorème 2.2), pixel-major: ``spp`` rays per pixel, in
     the tree through its :func:`jrt.camera.subpixel_offsets` (stratified anti-aliasing; 1:
-    the centre), in the sampled mode all through its centre (``spp`` paths). In spectral mode
-    each is replicated per wavelength sample (weights [N, 1]), or with ``bundles`` carries
-    them all (weights [N, C], split at the first surface that spawns children)."""
+    the centre), in the sampled mode all through its centre (``spp`` paths); in spectral
+    mode each replicated per wavelength sample (weights [N, 1]). (The renderer makes its
+    own camera rays, as bundles: :mod:`jrt.wavefront`.)"""
     _check_mode(mode)
     subpixel = spp if mode == "tree" else 1
     origins, directions = (np.asarray(a) for a in camera_rays(camera, subpixel))
     pixels = camera.num_rays
     rays = np.repeat(np.arange(pixels * subpixel), spp // subpixel)  # [P * spp]
     pixel = np.repeat(np.arange(pixels, dtype=np.int32), spp)
-    if not setup.spectral or bundles:
-        k = setup.channels if setup.spectral else 3
-        return Rays(origins=origins[rays], directions=directions[rays],
-                    weights=np.ones((rays.size, k), np.float32), pixels=pixel,
-                    channels=np.zeros(rays.size, np.int32),
-                    sources=np.full(rays.size, -1, np.int32))
-    c = setup.channels
-    index = np.repeat(rays, c)
+    copies = setup.channels if setup.spectral else 1
+    index = np.repeat(rays, copies)
+    channels = (np.tile(np.arange(copies, dtype=np.int32), pixels * spp) if setup.spectral
+                else np.zeros(index.size, np.int32))
     return Rays(
         origins=origins[index], directions=directions[index],
-        weights=np.ones((index.size, 1), np.float32), pixels=np.repeat(pixel, c),
-        channels=np.tile(np.arange(c, dtype=np.int32), pixels * spp),
+        weights=np.ones((index.size, setup.ray_channels), np.float32),
+        pixels=np.repeat(pixel, copies), channels=channels,
         sources=np.full(index.shape, -1, np.int32))
 
 
