@@ -1,51 +1,45 @@
 """accel: acceleration structures built in NumPy and flattened to arrays.
 
 ``accel.build(name, mesh, **params)`` (or ``accel.build(name, vertices, faces, **params)``)
-is the one entry point. The record it returns (:class:`accel.structure.Structure`) is what
+is the one entry point; ``accel.names()`` lists the structures, each declared once as an
+:class:`accel.StructureKind` (``accel.registry``; a new one joins with ``accel.register``).
+The record it returns (:class:`accel.structure.Structure`) is what
 ``jrt.closest_hit`` and ``jrt.occluded`` traverse. This package never imports JAX.
 """
 
 from __future__ import annotations
 
 import difflib
-import importlib
 import inspect
 
 import numpy as np
 
 from accel.geometry import mesh_arrays
+from accel.registry import (
+    StructureKind,
+    kind,
+    kinds,
+    names,
+    planes,
+    register,
+    unregister,
+)
 from accel.structure import Structure
 
-#: The structures, each a module ``accel.<name>`` with ``build(vertices, faces, **params)``
-#: (and, for the traversal engine, ``jrt.<name>`` with ``traversal(structure)``).
-NAMES: tuple[str, ...] = ("brute", "bvh", "kdtree", "octree", "bsp", "grid")
 
-#: What each kind's record holds: the names of its arrays and the keys of its layout.
-#: ``jrt`` checks a structure against them before tracing it, so that a record relabelled
-#: as another kind (or missing an array) is an error, never a silent wrong answer.
-SIGNATURES: dict[str, tuple[frozenset, frozenset]] = {
-    "brute": (frozenset({"triangles", "triangle_ids"}), frozenset()),
-    "bvh": (frozenset({"nodes", "triangles", "triangle_ids", "frame"}),
-            frozenset({"leaf_bits", "width"})),
-    "kdtree": (frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids",
-                          "frame"}), frozenset({"leaf_bits"})),
-    "octree": (frozenset({"nodes", "references", "triangles", "triangle_ids", "frame"}),
-               frozenset({"leaf_bits"})),
-    "bsp": (frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids",
-                       "frame"}), frozenset({"leaf_bits"})),
-    "grid": (frozenset({"cell_start", "grid", "references", "skip", "triangles",
-                        "triangle_ids", "frame"}), frozenset()),
-}
+def __getattr__(name: str):
+    # NAMES and SIGNATURES are views of the registry, computed when read, so that a kind
+    # registered later (accel.register) is in them.
+    if name == "NAMES":
+        return names()
+    if name == "SIGNATURES":
+        return {k.name: (k.arrays, k.layout) for k in kinds()}
+    raise AttributeError(f"module 'accel' has no attribute {name!r}")
 
 
 def _builder(name: str):
-    """The module ``accel.<name>``'s ``build`` (``name`` checked against :data:`NAMES`)."""
-    if not isinstance(name, str) or name not in NAMES:
-        close = difflib.get_close_matches(str(name), NAMES, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(f"unknown acceleration structure {name!r}{hint}; allowed: "
-                         f"{', '.join(NAMES)}")
-    return importlib.import_module(f"accel.{name}").build
+    """The registered kind ``name``'s builder (a ValueError listing the names if unknown)."""
+    return kind(name).build
 
 
 def parameters(name: str) -> dict[str, object]:
@@ -80,7 +74,7 @@ def build(name: str, mesh, faces=None, /, **params) -> Structure:
         accel.build("bvh", vertices, faces, width=8)   # or the arrays
 
     Args:
-        name: one of :data:`NAMES`.
+        name: a registered structure (:func:`names`).
         mesh: an object with ``vertices`` [V, 3] and ``faces`` [F, 3] attributes, or the
             vertices themselves (then ``faces`` is the second argument): float positions
             (stored as float32), all finite (a NaN or infinite coordinate is a
@@ -109,4 +103,5 @@ def build(name: str, mesh, faces=None, /, **params) -> Structure:
     return builder(vertices, faces, **params)
 
 
-__all__ = ["NAMES", "SIGNATURES", "Structure", "build", "parameters"]
+__all__ = ["NAMES", "SIGNATURES", "Structure", "StructureKind", "build", "kind", "kinds",
+           "names", "parameters", "planes", "register", "unregister"]

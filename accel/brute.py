@@ -10,6 +10,7 @@ import time
 import numpy as np
 
 from accel.geometry import degenerate_mask, triangle_vertices
+from accel.registry import StructureKind
 from accel.structure import Structure
 
 
@@ -27,3 +28,9 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> Structure:
         "bytes": int(triangles.nbytes + ids.nbytes),
     }
     return Structure(kind="brute", arrays=arrays, layout=(), stats=stats)
+
+
+KIND = StructureKind(
+    name="brute", build=build, arrays=frozenset({"triangles", "triangle_ids"}),
+    traversal=None, planes=None,
+    summary="every ray against every triangle: the baseline the other structures must equal")

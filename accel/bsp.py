@@ -37,9 +37,14 @@ On the camel the SAH picks an oblique plane at some 450 of 97,700 nodes (general
 every node of 16 or more references were picked at 50,000, and traced slower: see the
 defaults below).
 
-**Cost of the build**: per level, O(references x orientations) NumPy passes (the extents
-along the fixed orientations are computed once per triangle; the binning works on float32
-copies of them, the sides are decided in float64), at most ``max_depth`` levels.
+**The build** works level by level, every node of a level at once, with the kd-tree's
+bookkeeping of nodes, leaves and rows, its cost model and its parameters' checks
+(``accel.plane_tree``). A node whose bounding box has no area (a sliver cut off a corner,
+whose box rounds to a segment, still holding references through their margins) has no SAH
+(0 / 0) and stays a leaf. **Its cost**: per level, O(references x orientations) NumPy
+passes (the extents along the fixed orientations are computed once per triangle; the
+binning works on float32 copies of them, the sides are decided in float64), at most
+``max_depth`` levels.
 
 Layout (``nodes`` float32 [M, 8], 32 bytes a row, one row per *interior* node, both child
 references in the parent as ``accel.bvh`` and ``accel.kdtree``):
@@ -62,25 +67,23 @@ import time
 
 import numpy as np
 
-from accel.geometry import (
-    degenerate_mask,
-    leaf_bits_for,
-    leaf_references,
-    local_frame,
-    reference_margin,
-    triangle_extents,
-    triangle_vertices,
-)
-from accel.kdtree import (
+from accel.geometry import reference_margin
+from accel.plane_tree import (
+    DEFAULT_EMPTY_BONUS,
+    DEFAULT_INTERSECTION_COST,
+    DEFAULT_MAX_LEAF_SIZE,
+    DEFAULT_TRAVERSAL_COST,
     EMPTY_CUT_GAP,
     MIN_EMPTY_CUT,
+    LevelBuild,
+    TreeRows,
     check_params,
     default_max_depth,
-    finish_plane_tree,
     half_area,
-    ranks_in_segments,
     split_cost,
+    tree_triangles,
 )
+from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
 
 #: Defaults: 16 bins (the orientations multiply the candidates: 16 offsets along up to 9
@@ -90,18 +93,20 @@ from accel.structure import Structure
 #: references cost 13.7 and 39.6, the axis planes alone 13.0 and 37.8, general planes at 64
 #: or more 12.2 and 35.2 (and 256: 12.8, 37.0); the bounding-box estimate of an oblique
 #: cut's areas is rougher on small nodes, and every orientation costs a projection of all
-#: the node's triangles. Cost constants as the kd-tree's.
+#: the node's triangles. The cost constants, the empty-space bonus and the leaf size are the
+#: kd-tree's (``accel.plane_tree``).
 DEFAULT_BINS = 16
 DEFAULT_TRIANGLE_PLANES = 2
 DEFAULT_GENERAL_MIN_REFERENCES = 64
-DEFAULT_TRAVERSAL_COST = 2.0
-DEFAULT_INTERSECTION_COST = 1.0
-DEFAULT_EMPTY_BONUS = 0.2
-DEFAULT_MAX_LEAF_SIZE = 1
 ROW_FLOATS = 8
 AXES = np.eye(3)
 DIAGONALS = np.array([[1, 1, 1], [1, -1, 1], [-1, 1, 1], [-1, -1, 1]]) / np.sqrt(3)
 KINDS = ("axis", "diagonal", "triangle")
+
+__all__ = ["AXES", "DEFAULT_BINS", "DEFAULT_EMPTY_BONUS", "DEFAULT_GENERAL_MIN_REFERENCES",
+           "DEFAULT_INTERSECTION_COST", "DEFAULT_MAX_LEAF_SIZE", "DEFAULT_TRAVERSAL_COST",
+           "DEFAULT_TRIANGLE_PLANES", "DIAGONALS", "KIND", "KINDS", "ROW_FLOATS", "build",
+           "halfspace_box", "size_along", "stored_planes"]
 
 
 def _as_float32(a: np.ndarray) -> np.ndarray:
@@ -120,8 +125,8 @@ def halfspace_box(lo, hi, n, c):
     """
     low_terms = np.minimum(n * lo, n * hi)
     rest = low_terms.sum(axis=-1, keepdims=True) - low_terms
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = (c[..., None] - rest) / n
+    # (Only axes with n_i != 0 use the bound; the others divide by 1, unused.)
+    bound = (c[..., None] - rest) / np.where(n != 0, n, 1.0)
     new_lo = np.where(n < 0, np.maximum(lo, bound), lo)
     new_hi = np.where(n > 0, np.minimum(hi, bound), hi)
     empty = low_terms.sum(axis=-1) > c
@@ -160,7 +165,12 @@ def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, 
     pos, neg = normals > 0, normals < 0
     b_below = np.where(pos, -rest_lo * inv - lo, np.where(neg, hi - rest_lo * inv, size))
     b_above = np.where(pos, hi + rest_hi * inv, np.where(neg, rest_hi * inv - lo, size))
-    area = half_area(box_lo, box_hi)[:, None, None]
+    # A box without area (a segment or a point: a sliver whose bounding box rounded to
+    # nothing along two axes, still holding references through their margins) has no SAH,
+    # 0 / 0: such a node stays a leaf (all its candidates cost inf), and divides by 1.
+    box_area = half_area(box_lo, box_hi)
+    flat = box_area == 0
+    area = np.where(flat, 1.0, box_area)[:, None, None]
 
     axes_only = c_count == 3 and np.array_equal(normals[0], np.eye(3)) and np.all(
         normals == normals[:1])
@@ -205,10 +215,9 @@ def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, 
     n_right = np.cumsum(ends[:, :, ::-1], axis=2)[:, :, ::-1][:, :, 1:]
     cand_c = elo[:, :, None] + np.arange(1, bins) * width[:, :, None]  # [K, C, bins-1]
     p_left, p_right = side_areas(cand_c)
-    with np.errstate(invalid="ignore"):
-        cost = ct + ci * (p_left * n_left + p_right * n_right)
+    cost = ct + ci * (p_left * n_left + p_right * n_right)
     cost[~((width > 0)[:, :, None] & (cand_c > n_lo[:, :, None])
-           & (cand_c < n_hi[:, :, None]) & np.isfinite(cost))] = np.inf
+           & (cand_c < n_hi[:, :, None]) & ~flat[:, None, None])] = np.inf
     # Empty-space cuts, and the triangles' own planes, as extra candidates [K, C, 3].
     gap_lo = EMPTY_CUT_GAP * (largest + (elo - n_lo))
     gap_hi = EMPTY_CUT_GAP * (largest + (n_hi - ehi))
@@ -230,9 +239,8 @@ def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, 
         nl_extra[:, cols, 2] = np.add.reduceat(below, offsets, axis=0)
         nr_extra[:, cols, 2] = np.add.reduceat(above, offsets, axis=0)
     e_left, e_right = side_areas(extra_c)
-    with np.errstate(invalid="ignore"):
-        extra_cost = split_cost(ct, ci, bonus, e_left, e_right, 1.0, nl_extra, nr_extra)
-    extra_cost[~(extra_ok & np.isfinite(extra_cost))] = np.inf
+    extra_cost = split_cost(ct, ci, bonus, e_left, e_right, 1.0, nl_extra, nr_extra)
+    extra_cost[~(extra_ok & ~flat[:, None, None])] = np.inf
     every_cost = np.concatenate([cost, extra_cost], axis=2).reshape(k, -1)
     every_c = np.concatenate([cand_c, extra_c], axis=2).reshape(k, -1)
     pick = np.argmin(every_cost, axis=1)
@@ -270,8 +278,8 @@ def build(
         max_leaf_size, max_depth, traversal_cost, intersection_cost, empty_bonus: as
             ``accel.kdtree`` (max_depth None: round(8 + 1.3 log2 N)).
     """
-    check_params(bins, max_leaf_size, max_depth, traversal_cost, intersection_cost,
-                 empty_bonus, name="bsp")
+    check_params("bsp", bins, max_leaf_size, max_depth, traversal_cost, intersection_cost,
+                 empty_bonus)
     if not (isinstance(triangle_planes, int | np.integer) and 0 <= triangle_planes <= 16):
         raise ValueError(
             f"bsp: triangle_planes must be an integer in [0, 16], got {triangle_planes!r}")
@@ -281,13 +289,10 @@ def build(
                          f"{general_min_references!r}")
     start_time = time.perf_counter()
     ct, ci, bonus = float(traversal_cost), float(intersection_cost), float(empty_bonus)
-    keep = ~degenerate_mask(vertices, faces)
-    ids = np.flatnonzero(keep).astype(np.int32)
-    tris = triangle_vertices(vertices, np.asarray(faces)[ids]).reshape(-1, 3, 3)
-    t_count = ids.shape[0]
+    triangles = tree_triangles(vertices, faces)
+    tri64, extent = triangles.local, triangles.extent
+    t_count = triangles.ids.shape[0]
     depth_limit = default_max_depth(t_count) if max_depth is None else int(max_depth)
-    frame, tri64, bounds = local_frame(tris)
-    extent = triangle_extents(tri64)
     if t_count:
         tri_normals = _as_float32(_unit(np.cross(tri64[:, 1] - tri64[:, 0],
                                                  tri64[:, 2] - tri64[:, 0])))
@@ -300,29 +305,18 @@ def build(
     # decided in float64.
     fixed_min32, fixed_max32 = fixed_min.astype(np.float32), fixed_max.astype(np.float32)
 
-    node_lo, node_hi, node_depth = [], [], []
-    split_ids, split_normal, split_offset, split_child = [], [], [], []
-    leaf_ids, leaf_first, leaf_count, leaf_refs = [], [], [], []
+    # The nodes (their regions' bounding boxes), their splits (normal, offset) and leaves.
+    levels = LevelBuild(triangles.bounds, t_count, max_leaf_size, depth_limit,
+                        planes={"normal": (np.float64, (3,)), "offset": (np.float64, ())})
     kinds = np.zeros(len(KINDS), np.int64)
-    n_refs_out = 0
-    over_depth = 0
-    act_ids = np.zeros(1 if t_count else 0, np.int64)
-    act_lo = bounds[None, 0].astype(np.float64)[: len(act_ids)]
-    act_hi = bounds[None, 1].astype(np.float64)[: len(act_ids)]
-    node_lo.append(act_lo)
-    node_hi.append(act_hi)
-    node_depth.append(np.zeros(len(act_ids), np.int64))
-    next_id = len(act_ids)
+    # The references of the active level, sorted by node: node and triangle row.
     rseg = np.zeros(t_count, np.int64)
     rtri = np.arange(t_count, dtype=np.int64)
-    depth = 0
-    while act_ids.shape[0]:
-        k = act_ids.shape[0]
+    while levels.active:
+        k = levels.size
         counts = np.bincount(rseg, minlength=k)
         offsets = np.cumsum(counts) - counts
-        want = counts > max_leaf_size
-        splitting = want & (depth < depth_limit)
-        over_depth += int((want & ~splitting).sum())
+        splitting = levels.wanting_split(counts)
         normal = np.zeros((k, 3))
         offset = np.zeros(k)
         kind = np.zeros(k, np.int64)
@@ -360,22 +354,14 @@ def build(
                 pmin, pmax = fixed_min32[g_tri, :3], fixed_max32[g_tri, :3]
                 kind_of = np.zeros(3, np.int64)
             g_cost, g_pick, g_offset = _best_planes(
-                pmin, pmax, extent[g_tri], g_seg, counts[nodes], cand, exact, act_lo[nodes],
-                act_hi[nodes],
-                bins, ct, ci, bonus)
+                pmin, pmax, extent[g_tri], g_seg, counts[nodes], cand, exact,
+                levels.lo[nodes], levels.hi[nodes], bins, ct, ci, bonus)
             cost[nodes], offset[nodes] = g_cost, g_offset
             normal[nodes] = cand[np.arange(nodes.size), g_pick]
             kind[nodes] = kind_of[g_pick]
             fixed_index[nodes] = np.where(g_pick < 7, g_pick, -1)
         splitting &= cost < ci * counts
-        leaf_nodes = np.flatnonzero(~splitting)
-        if leaf_nodes.size:
-            leaf_refs.append(rtri[~splitting[rseg]])
-            c = counts[leaf_nodes]
-            leaf_ids.append(act_ids[leaf_nodes])
-            leaf_first.append(n_refs_out + np.cumsum(c) - c)
-            leaf_count.append(c)
-            n_refs_out += int(c.sum())
+        levels.close_leaves(splitting, counts, rseg, rtri)
         nodes = np.flatnonzero(splitting)
         m = nodes.size
         if m == 0:
@@ -384,22 +370,13 @@ def build(
         rank = np.full(k, -1, np.int64)
         rank[nodes] = np.arange(m)
         n, c, which = normal[nodes], offset[nodes], fixed_index[nodes]
-        lo, hi = act_lo[nodes], act_hi[nodes]
+        lo, hi = levels.lo[nodes], levels.hi[nodes]
         lo0, hi0 = halfspace_box(lo, hi, n, c)
         lo1, hi1 = halfspace_box(lo, hi, -n, -c)
         size_n = size_along(lo, hi, n)
-        child_ids = next_id + np.arange(2 * m)
-        next_id += 2 * m
-        split_ids.append(act_ids[nodes])
-        split_normal.append(n)
-        split_offset.append(c)
-        split_child.append(child_ids.reshape(m, 2))
-        child_lo = np.stack([lo0, lo1], axis=1).reshape(-1, 3)
-        child_hi = np.stack([hi0, hi1], axis=1).reshape(-1, 3)
-        child_lo = np.minimum(child_lo, child_hi)  # an empty side: a point, never used
-        node_lo.append(child_lo)
-        node_hi.append(child_hi)
-        node_depth.append(np.full(2 * m, depth + 1, np.int64))
+        # (An empty side's box becomes a point: such a child gets no reference.)
+        levels.split(nodes, (np.minimum(lo0, hi0), hi0), (np.minimum(lo1, hi1), hi1),
+                     normal=n, offset=c)
 
         # Each side whose widened half-space holds a vertex of the triangle.
         sel = np.flatnonzero(splitting[rseg])
@@ -412,79 +389,53 @@ def build(
             p_min[own], p_max[own] = t_min[:, 0], t_max[:, 0]
         delta = reference_margin(size_n[r], extent[rtri[sel]])
         member = [p_min <= c[r] + delta, p_max >= c[r] - delta]
-        seg_first = np.zeros(m, np.int64)
-        seg_first[1:] = np.cumsum(np.bincount(r, minlength=m))[:-1]
-        n_child = np.stack([np.bincount(r[member[0]], minlength=m),
-                            np.bincount(r[member[1]], minlength=m)], axis=1).reshape(-1)
-        child_first = np.cumsum(n_child) - n_child
-        total = int(n_child.sum())
-        new_tri = np.empty(total, np.int64)
-        new_seg = np.empty(total, np.int64)
-        live = np.flatnonzero(n_child > 0)
-        remap = np.full(2 * m, -1, np.int64)
-        remap[live] = np.arange(live.size)
-        for side in (0, 1):
-            idx = np.flatnonzero(member[side])
-            pos = (child_first[2 * r[idx] + side]
-                   + ranks_in_segments(member[side], seg_first, r)[idx])
-            new_tri[pos] = rtri[sel[idx]]
-            new_seg[pos] = remap[2 * r[idx] + side]
-        rseg, rtri = new_seg, new_tri
-        act_ids = child_ids[live]
-        act_lo = child_lo[live]
-        act_hi = child_hi[live]
-        depth += 1
+        # The next level: the children that hold references, references sorted by child.
+        order = levels.descend(sel, r, member)
+        rseg, rtri = order.segment, order.gather(rtri)
 
-    return _flatten(
-        tris, ids, frame, bounds, next_id, node_lo, node_hi, node_depth,
-        (split_ids, split_normal, split_offset, split_child),
-        (leaf_ids, leaf_first, leaf_count, leaf_refs),
+    tree = levels.rows("bsp")
+    return levels.structure(
+        "bsp", _node_rows(tree, triangles.bounds), tree, triangles,
         params={"bins": bins, "triangle_planes": triangle_planes,
                 "general_min_references": general_min_references,
                 "max_leaf_size": max_leaf_size, "max_depth": depth_limit,
                 "traversal_cost": ct, "intersection_cost": ci, "empty_bonus": bonus},
-        extra={"degenerate_skipped": int((~keep).sum()), "leaves_over_max_depth": over_depth,
+        extra={"degenerate_skipped": triangles.degenerate,
+               "leaves_over_max_depth": levels.over_depth,
                **{f"planes_{name}": int(count) for name, count in zip(KINDS, kinds,
                                                                       strict=True)}},
         start_time=start_time)
 
 
-def _cat(parts, dtype, shape=(0,)):
-    return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
-
-
-def _flatten(tris, ids, frame, bounds, total, node_lo, node_hi, node_depth, splits, leaves, *,
-             params, extra, start_time):
-    s_ids = _cat(splits[0], np.int64)
-    s_normal = _cat(splits[1], np.float64, (0, 3))
-    s_offset = _cat(splits[2], np.float64)
-    s_child = _cat(splits[3], np.int64, (0, 2))
-    l_ids = _cat(leaves[0], np.int64)
-    l_first = _cat(leaves[1], np.int64)
-    l_count = _cat(leaves[2], np.int64)
-    references = _cat(leaves[3], np.int32)
-    max_count = int(l_count.max()) if l_count.size else 0
-    try:
-        leaf_bits = leaf_bits_for(max_count, references.shape[0])
-    except ValueError as error:
-        raise ValueError(f"bsp: {error}") from None
-    ref = np.full(max(total, 1), -1, np.int64)
-    order = np.argsort(s_ids)
-    s_ids, s_normal, s_offset, s_child = (s_ids[order], s_normal[order], s_offset[order],
-                                          s_child[order])
-    ref[s_ids] = np.arange(s_ids.size)
-    ref[l_ids] = leaf_references(l_first, l_count, leaf_bits)
-    ref[l_ids[l_count == 0]] = -1
-    if s_ids.size:
-        nodes = np.zeros((s_ids.size, ROW_FLOATS), np.float32)
-        nodes[:, 0:3] = s_normal
-        nodes[:, 3] = s_offset
-        nodes.view(np.int32)[:, 4:6] = ref[s_child]
+def _node_rows(tree: TreeRows, bounds: np.ndarray) -> np.ndarray:
+    """The ``nodes`` array (the layout in the module docstring)."""
+    if tree.interior_ids.size:
+        nodes = np.zeros((tree.interior_ids.size, ROW_FLOATS), np.float32)
+        nodes[:, 0:3] = tree.planes["normal"]
+        nodes[:, 3] = tree.planes["offset"]
+        nodes.view(np.int32)[:, 4:6] = tree.children
     else:  # a single leaf (or nothing): the plane x = upper x of the box, child 1 empty
         nodes = np.zeros((1, ROW_FLOATS), np.float32)
         nodes[0, 0] = 1.0
         nodes[0, 3] = bounds[1, 0]
-        nodes.view(np.int32)[0, 4:6] = [ref[0] if total else -1, -1]
-    return finish_plane_tree("bsp", nodes, frame, bounds, references, tris, ids, leaf_bits,
-                             node_lo, node_hi, node_depth, s_ids, l_ids, l_count, total,
-                             params, extra, start_time)
+        nodes.view(np.int32)[0, 4:6] = [tree.root, -1]
+    return nodes
+
+
+def stored_planes(structure: Structure) -> list[np.ndarray]:
+    """Per axis, the tree's axis-aligned planes (normal ±e_a; general planes have no
+    per-axis coordinate and are left out), in world coordinates."""
+    nodes = np.asarray(structure["nodes"])
+    n, c = nodes[:, :3], nodes[:, 3]
+    found = []
+    for a in range(3):
+        axis_aligned = (np.abs(n[:, a]) == 1) & (np.count_nonzero(n, axis=1) == 1)
+        found.append(c[axis_aligned] * n[axis_aligned, a])
+    return world_planes(structure, found)
+
+
+KIND = StructureKind(
+    name="bsp", build=build,
+    arrays=frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids", "frame"}),
+    layout=frozenset({"leaf_bits"}), traversal="jrt.bsp:traversal", planes=stored_planes,
+    summary="BSP tree: split planes along the axes and the triangles' own planes")

@@ -88,12 +88,13 @@ from accel.geometry import (
     local_corners,
     triangle_vertices,
 )
+from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
 
 #: Defaults: 16 bins (Wald 2007 found 16-32 bins within a few percent of a full SAH
 #: sweep); costs C_T = 1/2, C_I = 1 as pbrt-v4's BVH (Pharr, Jakob & Humphreys, 4th ed.,
-#: section 7.3.2); leaves of at most 4 triangles (a prototype on the camel found 2-4
-#: within noise of each other).
+#: section 7.3.2); leaves of at most 4 triangles (on the camel, leaves of at most 2, 3
+#: and 4 traced within noise of each other).
 DEFAULT_BINS = 16
 DEFAULT_MAX_LEAF_SIZE = 4
 DEFAULT_TRAVERSAL_COST = 0.5
@@ -556,3 +557,18 @@ def _flatten(tris, ids, frame, order, node_lo, node_hi, node_first, node_count, 
     }
     return Structure(kind="bvh", arrays=arrays,
                      layout=(("leaf_bits", leaf_bits), ("width", width)), stats=stats)
+
+
+def stored_planes(structure: Structure) -> list[np.ndarray]:
+    """Per axis, the faces of every decoded child box (the empty slots' inverted boxes
+    too), in world coordinates: the planes the traversal's slab tests compare against."""
+    lo, hi = child_boxes(np.asarray(structure["nodes"]), structure.layout_value("width"))
+    return world_planes(structure, [np.concatenate([lo[..., a].ravel(), hi[..., a].ravel()])
+                                    for a in range(3)])
+
+
+KIND = StructureKind(
+    name="bvh", build=build,
+    arrays=frozenset({"nodes", "triangles", "triangle_ids", "frame"}),
+    layout=frozenset({"leaf_bits", "width"}), traversal="jrt.bvh:traversal", planes=stored_planes,
+    summary="bounding volume hierarchy: SAH-binned, 2-, 4- or 8-wide nodes")

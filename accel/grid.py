@@ -133,6 +133,7 @@ from accel.geometry import (
     triangles_overlap_boxes,
     widen_boxes,
 )
+from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
 
 #: Cells per triangle (lambda); see the module docstring.
@@ -411,3 +412,23 @@ def _stats(arrays, res, per_cell, references, *, density, max_resolution, max_sk
         "sah_cost": float(TRAVERSAL_COST * expected_cells + INTERSECTION_COST * expected_tests),
         "bytes": int(sum(a.nbytes for a in arrays.values())),
     }
+
+
+def stored_planes(structure: Structure) -> list[np.ndarray]:
+    """Per axis, the walls between the grid's cells (world coordinates, float32 as the
+    traversal computes them: ``lo + m * size``)."""
+    g = np.asarray(structure["grid"])
+    lo, size, res = g[0:3], g[6:9], g[12:15].view(np.int32)
+    walls = []
+    for a in range(3):
+        m = np.arange(int(res[a]) + 1, dtype=np.float32)
+        walls.append((lo[a] + m * size[a]).astype(np.float32))
+    return world_planes(structure, walls)
+
+
+KIND = StructureKind(
+    name="grid", build=build,
+    arrays=frozenset({"cell_start", "grid", "references", "skip", "triangles",
+                      "triangle_ids", "frame"}),
+    traversal="jrt.grid:traversal", planes=stored_planes,
+    summary="uniform grid: cells of equal size, walked cell by cell (3D-DDA)")

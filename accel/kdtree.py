@@ -51,9 +51,11 @@ traversal's intervals for the two children overlap (``jrt.planes``), so the leaf
 holds it is visited. Two leaf children of a node get adjacent slots in ``references``
 (the traversal hands both to the leaf loop as one range).
 
-**Cost of the build**: a level's work is O(references of the level) NumPy passes (binning,
-prefix sums, the straddlers' clipping), and there are at most ``max_depth`` levels:
-O(N log N) overall.
+**The build** works level by level, every node of a level at once; the bookkeeping of
+nodes, leaves and rows, the cost model and the parameters' checks are ``accel.plane_tree``'s,
+shared with the BSP tree. **Its cost**: a level's work is O(references of the level) NumPy
+passes (binning, prefix sums, the straddlers' clipping), and there are at most
+``max_depth`` levels: O(N log N) overall.
 
 Layout (``nodes`` float32 [M, 4], 16 bytes a row, one row per *interior* node, both child
 references in the parent as accel.bvh, so a leaf costs no traversal step of its own):
@@ -77,82 +79,40 @@ order.
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
 
-from accel.geometry import (
-    degenerate_mask,
-    leaf_bits_for,
-    leaf_references,
-    local_frame,
-    reference_margin,
-    triangle_extents,
-    triangle_vertices,
+from accel.geometry import reference_margin
+from accel.plane_tree import (
+    DEFAULT_EMPTY_BONUS,
+    DEFAULT_INTERSECTION_COST,
+    DEFAULT_MAX_LEAF_SIZE,
+    DEFAULT_TRAVERSAL_COST,
+    EMPTY_CUT_GAP,
+    MIN_EMPTY_CUT,
+    LevelBuild,
+    TreeRows,
+    check_params,
+    default_max_depth,
+    half_area,
+    split_cost,
+    tree_triangles,
 )
+from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
 
-#: Defaults. 32 bins (Shevtsov et al. 2007 use 32; Wald 2007 found 16-32 within a few
-#: percent of a full sweep). Cost constants: a traversal step and a triangle test each cost
-#: one iteration of the engine's loop (``jrt.engine``), which puts K_T near K_I; measured on
-#: the camel (50k camera and 50k incoherent rays, steps + tests per ray), K_T = 1 costs 11.5
-#: and 32.8, K_T = 2 11.8 and 33.5 with half the nodes and a 1.5x faster build, K_T = 4 12.6
-#: and 36.2 (K_I = 1); Wald & Havran's K_T = 15, K_I = 20 and pbrt's 1 and 80 split far
-#: deeper (2-3x the references of K_T = 2 at the depth limit). The empty-space bonus is
-#: Wald & Havran's lambda = 0.8, i.e. ``empty_bonus`` 0.2 (pbrt-v3 uses 0.5, which here
-#: spends the depth limit on empty cuts: 2x the work per ray). Leaves of one reference
-#: before the split search is skipped: pbrt's ``maxPrims = 1``; the SAH stops earlier
-#: wherever splitting does not pay.
+#: Defaults: 32 bins (Shevtsov et al. 2007 use 32; Wald 2007 found 16-32 within a few
+#: percent of a full sweep); the cost constants, the empty-space bonus and the leaf size are
+#: ``accel.plane_tree``'s (measured with this tree: see there).
 DEFAULT_BINS = 32
-DEFAULT_TRAVERSAL_COST = 2.0
-DEFAULT_INTERSECTION_COST = 1.0
-DEFAULT_EMPTY_BONUS = 0.2
-DEFAULT_MAX_LEAF_SIZE = 1
-MAX_DEPTH_LIMIT = 64
 ROW_FLOATS = 4
-#: How far outside the geometry an empty-space cut is placed, relative to the room it cuts
-#: off and the largest triangle of the node: 4 x CELL_MARGIN, so that a triangle touching
-#: the geometry's bound is not referenced by the empty child (its margin is CELL_MARGIN of
-#: that child's size and of its own extent, ``accel.geometry.reference_margin``).
-EMPTY_CUT_GAP = 2.0**-14
-#: An empty-space cut must cut off at least this fraction of the node's largest extent:
-#: with the bonus any empty cut "pays", and thinner and thinner slivers next to geometry
-#: lying in a plane would otherwise be cut off level after level.
-MIN_EMPTY_CUT = 2.0**-10
 #: Vertices a clipped polygon may have: a triangle clipped to a box has at most 9.
 POLYGON_SLOTS = 10
 
-
-def default_max_depth(triangles: int) -> int:
-    """pbrt's rule: round(8 + 1.3 log2 N)."""
-    return int(round(8 + 1.3 * math.log2(max(triangles, 1))))
-
-
-def check_params(bins, max_leaf_size, max_depth, traversal_cost, intersection_cost,
-                  empty_bonus, name="kdtree"):
-    if not (isinstance(bins, int | np.integer) and 2 <= bins <= 256):
-        raise ValueError(f"{name}: bins must be an integer in [2, 256], got {bins!r}")
-    if not (isinstance(max_leaf_size, int | np.integer) and 1 <= max_leaf_size <= 255):
-        raise ValueError(
-            f"{name}: max_leaf_size must be an integer in [1, 255], got {max_leaf_size!r}")
-    if max_depth is not None and not (
-            isinstance(max_depth, int | np.integer) and 0 <= max_depth <= MAX_DEPTH_LIMIT):
-        raise ValueError(f"{name}: max_depth must be None or an integer in "
-                         f"[0, {MAX_DEPTH_LIMIT}], got {max_depth!r}")
-    for key, value in (("traversal_cost", traversal_cost),
-                       ("intersection_cost", intersection_cost)):
-        if not (isinstance(value, int | float | np.number) and np.isfinite(value)
-                and value > 0):
-            raise ValueError(f"{name}: {key} must be a positive finite number, got {value!r}")
-    if not (isinstance(empty_bonus, int | float | np.number) and 0 <= empty_bonus < 1):
-        raise ValueError(f"{name}: empty_bonus must be a number in [0, 1), got {empty_bonus!r}")
-
-
-def half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Half the surface area of boxes [..., 3] (0 for inverted boxes)."""
-    e = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
-    return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
+__all__ = ["DEFAULT_BINS", "DEFAULT_EMPTY_BONUS", "DEFAULT_INTERSECTION_COST",
+           "DEFAULT_MAX_LEAF_SIZE", "DEFAULT_TRAVERSAL_COST", "KIND", "ROW_FLOATS", "build",
+           "clip_polygons", "polygon_bounds", "stored_planes"]
 
 
 def clip_polygons(poly: np.ndarray, count: np.ndarray, axis: np.ndarray, bound: np.ndarray,
@@ -267,11 +227,6 @@ def _best_splits(rlo, rhi, rext, seg, counts, cell_lo, cell_hi, bins, ct, ci, bo
     return best_cost, best_axis, best_plane
 
 
-def split_cost(ct, ci, bonus, a_left, a_right, area, n_left, n_right):
-    cost = ct + ci * (a_left * n_left + a_right * n_right) / area
-    return cost * np.where((n_left == 0) | (n_right == 0), 1.0 - bonus, 1.0)
-
-
 class _Pool:
     """The references' clipped polygons, appended to as straddlers are clipped; compacted
     to the live ones when those fall under half (amortised O(1) per polygon)."""
@@ -309,12 +264,6 @@ class _Pool:
         return np.arange(n)
 
 
-def ranks_in_segments(flags: np.ndarray, seg_first: np.ndarray, seg: np.ndarray) -> np.ndarray:
-    """For each element, how many flagged elements precede it in its segment."""
-    c = np.cumsum(flags) - flags
-    return c - c[seg_first[seg]]
-
-
 def build(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -335,48 +284,30 @@ def build(
         traversal_cost, intersection_cost: the SAH constants K_T and K_I.
         empty_bonus: the cost of a split with an empty side is scaled by 1 - empty_bonus.
     """
-    check_params(bins, max_leaf_size, max_depth, traversal_cost, intersection_cost,
-                  empty_bonus)
+    check_params("kdtree", bins, max_leaf_size, max_depth, traversal_cost, intersection_cost,
+                 empty_bonus)
     start_time = time.perf_counter()
     ct, ci, bonus = float(traversal_cost), float(intersection_cost), float(empty_bonus)
-    keep = ~degenerate_mask(vertices, faces)
-    ids = np.flatnonzero(keep).astype(np.int32)
-    tris = triangle_vertices(vertices, np.asarray(faces)[ids]).reshape(-1, 3, 3)
-    t_count = ids.shape[0]
+    triangles = tree_triangles(vertices, faces)
+    tri64, extent = triangles.local, triangles.extent
+    t_count = triangles.ids.shape[0]
     depth_limit = default_max_depth(t_count) if max_depth is None else int(max_depth)
-    frame, tri64, bounds = local_frame(tris)
-
-    # Per node (creation order = breadth first): cell, depth, split (axis, plane, the
-    # ids of both children) or leaf (slots in ``references``).
-    node_lo, node_hi, node_depth = [], [], []
-    split_ids, split_axis, split_plane, split_child = [], [], [], []
-    leaf_ids, leaf_first, leaf_count, leaf_refs = [], [], [], []
-    n_refs_out = 0
+    # The nodes (cells), their splits (axis, plane) and leaves.
+    levels = LevelBuild(triangles.bounds, t_count, max_leaf_size, depth_limit,
+                        planes={"axis": (np.int64, ()), "plane": (np.float64, ())})
     planar_total = 0
-    over_depth = 0
-    # Active nodes of this level (cells) and their references, sorted by node: triangle
-    # row, the triangle clipped to the node's widened cell (a polygon in ``pool``, which
-    # only straddlers add to) and its bounds.
-    act_ids = np.zeros(1 if t_count else 0, np.int64)
-    act_lo = bounds[None, 0].astype(np.float64)[: len(act_ids)]
-    act_hi = bounds[None, 1].astype(np.float64)[: len(act_ids)]
-    node_lo.append(act_lo)
-    node_hi.append(act_hi)
-    node_depth.append(np.zeros(len(act_ids), np.int64))
-    next_id = len(act_ids)
+    # The references of the active level, sorted by node: node, triangle row, the triangle
+    # clipped to the node's widened cell (a polygon in ``pool``, which only straddlers add
+    # to) and its bounds.
     rseg = np.zeros(t_count, np.int64)
     rtri = np.arange(t_count, dtype=np.int64)
     pool = _Pool(tri64)
     rpoly = np.arange(t_count, dtype=np.int64)
     rlo, rhi = tri64.min(axis=1), tri64.max(axis=1)
-    extent = triangle_extents(tri64)
-    depth = 0
-    while act_ids.shape[0]:
-        k = act_ids.shape[0]
+    while levels.active:
+        k = levels.size
         counts = np.bincount(rseg, minlength=k)
-        want = counts > max_leaf_size
-        splitting = want & (depth < depth_limit)
-        over_depth += int((want & ~splitting).sum())
+        splitting = levels.wanting_split(counts)
         axis = np.zeros(k, np.int64)
         plane = np.zeros(k)
         if splitting.any():
@@ -386,18 +317,9 @@ def build(
             mine = splitting[rseg]
             cost, axis[cand], plane[cand] = _best_splits(
                 rlo[mine], rhi[mine], extent[rtri[mine]], remap[rseg[mine]], counts[cand],
-                act_lo[cand],
-                act_hi[cand], bins, ct, ci, bonus)
+                levels.lo[cand], levels.hi[cand], bins, ct, ci, bonus)
             splitting[cand] &= cost < ci * counts[cand]
-        # Leaves: their references, in node order, go to ``references``.
-        leaf_nodes = np.flatnonzero(~splitting)
-        if leaf_nodes.size:
-            leaf_refs.append(rtri[~splitting[rseg]])
-            c = counts[leaf_nodes]
-            leaf_ids.append(act_ids[leaf_nodes])
-            leaf_first.append(n_refs_out + np.cumsum(c) - c)
-            leaf_count.append(c)
-            n_refs_out += int(c.sum())
+        levels.close_leaves(splitting, counts, rseg, rtri)
         nodes = np.flatnonzero(splitting)
         m = nodes.size
         if m == 0:
@@ -406,24 +328,14 @@ def build(
         rank = np.full(k, -1, np.int64)
         rank[nodes] = np.arange(m)
         ax, sp = axis[nodes], plane[nodes]
-        lo, hi = act_lo[nodes], act_hi[nodes]
+        lo, hi = levels.lo[nodes], levels.hi[nodes]
         rows = np.arange(m)
         lo0, hi0, lo1, hi1 = lo, hi.copy(), lo.copy(), hi
         hi0[rows, ax] = sp
         lo1[rows, ax] = sp
         size0 = (hi0 - lo0)[rows, ax]  # the children's sizes across the plane
         size1 = (hi1 - lo1)[rows, ax]
-        child_ids = next_id + np.arange(2 * m)
-        next_id += 2 * m
-        split_ids.append(act_ids[nodes])
-        split_axis.append(ax)
-        split_plane.append(sp)
-        split_child.append(child_ids.reshape(m, 2))
-        child_lo = np.stack([lo0, lo1], axis=1).reshape(-1, 3)
-        child_hi = np.stack([hi0, hi1], axis=1).reshape(-1, 3)
-        node_lo.append(child_lo)
-        node_hi.append(child_hi)
-        node_depth.append(np.full(2 * m, depth + 1, np.int64))
+        levels.split(nodes, (lo0, hi0), (lo1, hi1), axis=ax, plane=sp)
 
         # Classify the references of the splitting nodes by their clipped bounds.
         sel = np.flatnonzero(splitting[rseg])
@@ -457,142 +369,49 @@ def build(
             p, c = clip_polygons(poly, count, a[both], bound[both], upper)
             clipped.append((pool.add(p, c),) + polygon_bounds(p))
 
-        # The next level: the children that hold references, references sorted by child.
-        seg_first = np.zeros(m, np.int64)
-        seg_first[1:] = np.cumsum(np.bincount(r, minlength=m))[:-1]
-        n_child = np.stack([np.bincount(r[member[0]], minlength=m),
-                            np.bincount(r[member[1]], minlength=m)], axis=1).reshape(-1)
-        child_first = np.cumsum(n_child) - n_child
-        total = int(n_child.sum())
-        new_poly = np.empty(total, np.int64)
-        new_lo = np.empty((total, 3))
-        new_hi = np.empty((total, 3))
-        new_tri = np.empty(total, np.int64)
-        new_seg = np.empty(total, np.int64)
-        live = np.flatnonzero(n_child > 0)
-        remap = np.full(2 * m, -1, np.int64)
-        remap[live] = np.arange(live.size)
+        # The next level: the children that hold references, references sorted by child;
+        # the straddlers' clipped polygons replace their parents' ones.
+        order = levels.descend(sel, r, member)
+        rseg, rtri = order.segment, order.gather(rtri)
+        rpoly, rlo, rhi = order.gather(rpoly), order.gather(rlo), order.gather(rhi)
         for side in (0, 1):
-            idx = np.flatnonzero(member[side])
-            rank_in = ranks_in_segments(member[side], seg_first, r)
-            pos = child_first[2 * r[idx] + side] + rank_in[idx]
-            new_tri[pos] = rtri[sel[idx]]
-            new_seg[pos] = remap[2 * r[idx] + side]
-            new_poly[pos] = rpoly[sel[idx]]
-            new_lo[pos] = rlo[sel[idx]]
-            new_hi[pos] = rhi[sel[idx]]
-            # The straddlers' clipped polygons replace their parents' ones.
-            where = child_first[2 * r[both] + side] + rank_in[both]
-            new_poly[where], new_lo[where], new_hi[where] = clipped[side]
-        rseg, rtri, rpoly, rlo, rhi = new_seg, new_tri, new_poly, new_lo, new_hi
+            where = order.slots(side, both)
+            rpoly[where], rlo[where], rhi[where] = clipped[side]
         rpoly = pool.compact(rpoly)
-        act_ids = child_ids[live]
-        act_lo = child_lo[live]
-        act_hi = child_hi[live]
-        depth += 1
 
-    return _flatten(
-        tris, ids, frame, bounds, next_id, node_lo, node_hi, node_depth,
-        (split_ids, split_axis, split_plane, split_child),
-        (leaf_ids, leaf_first, leaf_count, leaf_refs),
+    tree = levels.rows("kdtree")
+    return levels.structure(
+        "kdtree", _node_rows(tree, triangles.bounds), tree, triangles,
         params={"bins": bins, "max_leaf_size": max_leaf_size, "max_depth": depth_limit,
                 "traversal_cost": ct, "intersection_cost": ci, "empty_bonus": bonus},
-        extra={"degenerate_skipped": int((~keep).sum()), "planar_references": planar_total,
-               "leaves_over_max_depth": over_depth},
+        extra={"degenerate_skipped": triangles.degenerate, "planar_references": planar_total,
+               "leaves_over_max_depth": levels.over_depth},
         start_time=start_time)
 
 
-def _cat(parts, dtype, shape=(0,)):
-    return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
-
-
-def _flatten(tris, ids, frame, bounds, total, node_lo, node_hi, node_depth, splits, leaves, *,
-             params, extra, start_time):
-    split_ids, split_axis, split_plane, split_child = splits
-    s_ids = _cat(split_ids, np.int64)
-    s_axis = _cat(split_axis, np.int64)
-    s_plane = _cat(split_plane, np.float64)
-    s_child = _cat(split_child, np.int64, (0, 2))
-    l_ids = _cat(leaves[0], np.int64)
-    l_first = _cat(leaves[1], np.int64)
-    l_count = _cat(leaves[2], np.int64)
-    references = _cat(leaves[3], np.int32)
-    max_count = int(l_count.max()) if l_count.size else 0
-    try:
-        leaf_bits = leaf_bits_for(max_count, references.shape[0])
-    except ValueError as error:
-        raise ValueError(f"kdtree: {error}") from None
-    # The reference of every node: interior rows in creation (breadth-first) order,
-    # leaves by their code, empty children (never active) -1.
-    ref = np.full(max(total, 1), -1, np.int64)
-    order = np.argsort(s_ids)
-    s_ids, s_axis, s_plane, s_child = s_ids[order], s_axis[order], s_plane[order], \
-        s_child[order]
-    ref[s_ids] = np.arange(s_ids.size)
-    ref[l_ids] = leaf_references(l_first, l_count, leaf_bits)
-    ref[l_ids[l_count == 0]] = -1
-    if s_ids.size:
-        nodes = np.zeros((s_ids.size, ROW_FLOATS), np.float32)
-        nodes[:, 0] = s_plane
-        nodes.view(np.int32)[:, 1] = s_axis
-        nodes.view(np.int32)[:, 2:4] = ref[s_child]
+def _node_rows(tree: TreeRows, bounds: np.ndarray) -> np.ndarray:
+    """The ``nodes`` array (the layout in the module docstring)."""
+    if tree.interior_ids.size:
+        nodes = np.zeros((tree.interior_ids.size, ROW_FLOATS), np.float32)
+        nodes[:, 0] = tree.planes["plane"]
+        nodes.view(np.int32)[:, 1] = tree.planes["axis"]
+        nodes.view(np.int32)[:, 2:4] = tree.children
     else:  # a single leaf (or nothing): one root row, child 1 empty
         nodes = np.zeros((1, ROW_FLOATS), np.float32)
         nodes[0, 0] = bounds[1, 0]
-        nodes.view(np.int32)[0, 2:4] = [ref[0] if total else -1, -1]
-    return finish_plane_tree("kdtree", nodes, frame, bounds, references, tris, ids, leaf_bits,
-                             node_lo, node_hi, node_depth, s_ids, l_ids, l_count, total,
-                             params, extra, start_time)
+        nodes.view(np.int32)[0, 2:4] = [tree.root, -1]
+    return nodes
 
 
-def finish_plane_tree(kind, nodes, frame, bounds, references, tris, ids, leaf_bits, node_lo,
-                      node_hi, node_depth, s_ids, l_ids, l_count, total, params, extra,
-                      start_time):
-    """The arrays and statistics of a plane tree (kd-tree or BSP tree) once its rows are
-    laid out: shared by both builders. ``s_ids``/``l_ids``: the node ids of the interior
-    nodes and of the leaves (empty children included), ``l_count`` the leaves' reference
-    counts; ``node_lo``/``node_hi``/``node_depth`` per node by id. The SAH cost is
-    Goldsmith & Salmon's: (C_T Σ interior areas + C_I Σ leaf area × references) / root area.
-    """
-    lo = _cat(node_lo, np.float64, (0, 3))
-    hi = _cat(node_hi, np.float64, (0, 3))
-    depth = _cat(node_depth, np.int64)
-    interior = np.zeros(total, bool)
-    interior[s_ids] = True
-    is_leaf = ~interior
-    # Per leaf (including empty children): its reference count.
-    count = np.zeros(total, np.int64)
-    count[l_ids] = l_count
-    areas = half_area(lo, hi)
-    root_area = areas[0] if total else 0.0
-    ct, ci = params["traversal_cost"], params["intersection_cost"]
-    if root_area > 0:
-        sah = (ct * areas[interior].sum() + ci * (areas[is_leaf] * count[is_leaf]).sum()) \
-            / root_area
-    else:
-        sah = 0.0
-    full = l_count[l_count > 0]
-    if references.size == 0:
-        # The engine gathers a slot even when no leaf names one: one unused slot.
-        references = np.zeros(1, np.int32)
-    arrays = {"nodes": nodes, "bounds": bounds.astype(np.float32), "references": references,
-              "triangles": np.ascontiguousarray(tris), "triangle_ids": ids,
-              "frame": np.asarray(frame, np.float32)}
-    stats = {
-        "build_seconds": time.perf_counter() - start_time,
-        **params,
-        "triangles": int(tris.shape[0]),
-        **extra,
-        "nodes": int(total) if total else 1,
-        "interior_nodes": int(s_ids.size),
-        "leaves": int(is_leaf.sum()) if total else 1,
-        "empty_leaves": int((is_leaf & (count == 0)).sum()) if total else 1,
-        "depth": int(depth.max()) if total else 0,
-        "references": int(full.sum()),
-        "references_per_triangle": float(full.sum() / max(tris.shape[0], 1)),
-        "references_per_leaf_mean": float(full.mean()) if full.size else 0.0,
-        "references_per_leaf_max": int(full.max()) if full.size else 0,
-        "sah_cost": float(sah),
-        "bytes": int(sum(a.nbytes for a in arrays.values())),
-    }
-    return Structure(kind=kind, arrays=arrays, layout=(("leaf_bits", leaf_bits),), stats=stats)
+def stored_planes(structure: Structure) -> list[np.ndarray]:
+    """Per axis, the inner nodes' split planes (world coordinates)."""
+    nodes = np.asarray(structure["nodes"])
+    axis = nodes.view(np.int32)[:, 1]
+    return world_planes(structure, [nodes[axis == a, 0] for a in range(3)])
+
+
+KIND = StructureKind(
+    name="kdtree", build=build,
+    arrays=frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids", "frame"}),
+    layout=frozenset({"leaf_bits"}), traversal="jrt.kdtree:traversal", planes=stored_planes,
+    summary="kd-tree: axis-aligned split planes chosen by the SAH")

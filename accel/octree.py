@@ -111,6 +111,7 @@ from accel.geometry import (
     triangle_vertices,
     triangles_overlap_boxes,
 )
+from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
 
 DEFAULT_MAX_LEAF_SIZE = 4
@@ -359,3 +360,19 @@ def _flatten(tris, frame, ids, row_centres, row_halves, level_split, level_first
     }
     return Structure(kind="octree", arrays=arrays, layout=(("leaf_bits", leaf_bits),),
                      stats=stats)
+
+
+def stored_planes(structure: Structure) -> list[np.ndarray]:
+    """Per axis, every cell's centre plane and the root cell's faces (world coordinates):
+    the planes a cell's children split at."""
+    nodes = np.asarray(structure["nodes"])
+    c, h = nodes[0, :3], nodes[0, 3]
+    return world_planes(structure, [np.concatenate([nodes[:, a], [c[a] - h, c[a] + h]])
+                                    for a in range(3)])
+
+
+KIND = StructureKind(
+    name="octree", build=build,
+    arrays=frozenset({"nodes", "references", "triangles", "triangle_ids", "frame"}),
+    layout=frozenset({"leaf_bits"}), traversal="jrt.octree:traversal", planes=stored_planes,
+    summary="octree: cubic cells split at their centres, SAH-terminated")

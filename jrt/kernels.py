@@ -160,7 +160,7 @@ def _edge_function(ax, ay, bx, by):
     return jnp.where(swap, -e, e)
 
 
-def _gamma(n: int, dtype) -> float:
+def gamma(n: int, dtype) -> float:
     """pbrt's γ_n = n ε / (1 - n ε), ε the unit roundoff (half the machine epsilon)."""
     eps = float(jnp.finfo(dtype).eps) * 0.5
     return n * eps / (1 - n * eps)
@@ -240,12 +240,12 @@ def watertight(origin: Vec, direction: Vec, v0: Vec, v1: Vec, v2: Vec):
     max_zt = jnp.maximum(jnp.maximum(jnp.abs(p0z), jnp.abs(p1z)), jnp.abs(p2z))
     max_xt = jnp.maximum(jnp.maximum(jnp.abs(p0x), jnp.abs(p1x)), jnp.abs(p2x))
     max_yt = jnp.maximum(jnp.maximum(jnp.abs(p0y), jnp.abs(p1y)), jnp.abs(p2y))
-    delta_z = _gamma(3, dtype) * max_zt
-    delta_x = _gamma(5, dtype) * (max_xt + max_zt)
-    delta_y = _gamma(5, dtype) * (max_yt + max_zt)
-    delta_e = 2 * (_gamma(2, dtype) * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt)
+    delta_z = gamma(3, dtype) * max_zt
+    delta_x = gamma(5, dtype) * (max_xt + max_zt)
+    delta_y = gamma(5, dtype) * (max_yt + max_zt)
+    delta_e = 2 * (gamma(2, dtype) * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt)
     max_e = jnp.maximum(jnp.maximum(jnp.abs(e0), jnp.abs(e1)), jnp.abs(e2))
-    delta_t = 3 * (_gamma(3, dtype) * max_e * max_zt + delta_e * max_zt + delta_z * max_e)
+    delta_t = 3 * (gamma(3, dtype) * max_e * max_zt + delta_e * max_zt + delta_z * max_e)
     delta_t = delta_t * jnp.abs(inv_det)
 
     # The second certificate (see the docstring): every corner ahead of the origin, and

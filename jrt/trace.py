@@ -42,7 +42,6 @@ float32 on the way in; the hits are float32 and int32).
 from __future__ import annotations
 
 import functools
-import importlib
 import os
 
 import jax
@@ -59,14 +58,11 @@ from jrt.engine import Counters, StackOverflowError, TraversalError
 from jrt.hits import Hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
 
-#: Every structure kind. Each but brute force is stepped by the engine: module
-#: ``jrt.<kind>`` gives ``traversal(structure) -> jrt.engine.Traversal``.
-KINDS = accel.NAMES
-
 
 def traversal_of(structure: Structure) -> engine.Traversal:
-    """The engine traversal of a structure (from its module ``jrt.<kind>``)."""
-    return importlib.import_module(f"jrt.{structure.kind}").traversal(structure)
+    """The engine traversal of a structure: its registered kind's ``traversal`` function
+    (:class:`accel.StructureKind`; ``jrt.<kind>.traversal`` for the built-in ones)."""
+    return accel.kind(structure.kind).traversal_function()(structure)
 
 
 #: The smallest size bucket (:func:`bucket_size`), a multiple of brute force's ray chunk
@@ -189,10 +185,11 @@ def _check_structure(structure):
         raise TypeError(
             f"structure must be an accel.Structure (from accel.build), got {type(structure)}"
         )
-    if structure.kind not in KINDS:
+    if structure.kind not in accel.names():
         raise ValueError(f"no traversal for structure kind {structure.kind!r}; "
-                         f"allowed: {', '.join(KINDS)}")
-    arrays, layout = accel.SIGNATURES[structure.kind]
+                         f"allowed: {', '.join(accel.names())}")
+    declared = accel.kind(structure.kind)
+    arrays, layout = declared.arrays, declared.layout
     has_arrays = frozenset(structure.arrays)
     has_layout = frozenset(name for name, _ in structure.layout)
     if has_arrays != arrays or has_layout != layout:
@@ -242,7 +239,7 @@ def _core(structure, origins, directions, tmax, *, kernel, any_hit, counters, la
           stack_size):
     """The jittable query on checked rays (float32 [N, 3], [N, 3], [N]): (answers, counters
     int32 [N, 3] or None, status int32 scalar). Brute force reports no status (0)."""
-    if structure.kind == "brute":
+    if not accel.kind(structure.kind).engine:  # brute force: no engine, every triangle
         if any_hit:
             out = brute.occluded(structure["triangles"], origins, directions, tmax,
                                  kernel=kernel)
@@ -324,7 +321,7 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
     (:func:`query_status`)."""
     _check_structure(structure)
     get_kernel(kernel)
-    is_brute = structure.kind == "brute"
+    is_brute = not accel.kind(structure.kind).engine
     if counters and is_brute:
         raise ValueError("counters are available for the engine's structures, not brute "
                          "force (which tests every triangle)")

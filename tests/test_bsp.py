@@ -17,17 +17,18 @@ in or along them.
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
 import test_kdtree as kd
 from hypothesis import given
-from test_bvh_traversal import KERNELS, assert_same_hits, soup
+from test_bvh_traversal import soup
 
 import accel
-import jrt
 from accel import bsp
-from jrt.trace import as_numpy
+from jrt.data import mesh_path
+from jrt.mesh import load_mesh
 
 KIND = "bsp"
 STAT_KEYS = {
@@ -251,6 +252,25 @@ def test_random_soup_build_is_consistent(params):
         assert structure.stats["planes_diagonal"] + structure.stats["planes_triangle"] > 0
 
 
+#: On the fandisk these reach nodes whose bounding box has no area (a segment: a sliver
+#: whose box rounded to nothing along two axes, with references through their margins),
+#: where the SAH is 0 / 0: in the axis-plane search (64 bins) and in the general one.
+FLAT_BOX_PARAMS = [{"bins": 64, "triangle_planes": 0},
+                   {"general_min_references": 1, "bins": 64, "triangle_planes": 0}]
+
+
+@pytest.mark.parametrize("params", [{}, *FLAT_BOX_PARAMS])
+def test_real_mesh_builds_without_floating_point_warnings(params):
+    """No division by zero nor invalid value on a real mesh (RuntimeWarnings as errors),
+    and the tree still references every triangle wherever its points lie."""
+    mesh = load_mesh(mesh_path("fandisk"))
+    with warnings.catch_warnings(), np.errstate(divide="warn", invalid="warn", over="warn"):
+        warnings.simplefilter("error", RuntimeWarning)
+        structure = accel.build(KIND, mesh.vertices, mesh.faces, **params)
+    tree = check_bsp(structure, mesh.vertices, mesh.faces, **params)
+    check_point_location(structure, tree, np.random.default_rng(2))
+
+
 def test_layer_cake_is_traced_exactly():
     """Triangles in the planes of axis-aligned splits (both sides for the BSP tree)."""
     vertices, faces = kd.layer_cake()
@@ -263,22 +283,6 @@ def test_layer_cake_is_traced_exactly():
 # ---------------------------------------------------------------------------------------------
 # The camel
 # ---------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("kernel", KERNELS)
-@pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
-def test_camel_closest_hit_matches_brute(camel_bsp, camel_rays, brute_hits, kernel, ray_set):
-    origins, directions = camel_rays[ray_set]
-    want = brute_hits(kernel, ray_set)
-    got = as_numpy(jrt.closest_hit(camel_bsp, origins, directions, kernel=kernel))
-    assert (want["triangle"] >= 0).mean() > 0.1
-    assert_same_hits(got, want, origins, directions, f"{kernel}/{ray_set}")
-
-
-@pytest.mark.parametrize("kernel", KERNELS)
-def test_camel_occluded_matches_brute(camel_bsp, camel, camel_brute, camel_rays, brute_hits,
-                                      kernel):
-    kd.check_camel_occluded(camel_bsp, camel, camel_brute, camel_rays, brute_hits, kernel)
 
 
 def test_camel_counters(camel_bsp, camel_rays, brute_hits):
