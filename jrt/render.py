@@ -6,9 +6,10 @@ shading normal interpolates the hit triangle's corner normals
 across the others) with the hit's barycentrics ``(1-u-v, u, v)``; a shadow ray goes from
 the hit point toward the lamp and stops at the first triangle it meets (``jrt.occluded``).
 The pixel is ``albedo * (ambient + (1 - ambient) * max(0, n·l))`` when the lamp is
-visible, ``albedo * ambient`` in shadow. The background is a vertical
-sky gradient whose blue channel always exceeds its red one, while the (warm) camel's red
-exceeds its blue: a pixel belongs to the mesh iff red > blue, which the tests use.
+visible, ``albedo * ambient`` in shadow. The background is :mod:`jrt.sky`'s vertical
+gradient over the image rows, whose blue channel always exceeds its red one, while the
+(warm) camel's red exceeds its blue: a pixel belongs to the mesh iff red > blue, which the
+tests use.
 """
 
 from __future__ import annotations
@@ -24,14 +25,15 @@ from jaxtyping import Array, Float
 from accel.structure import Structure
 from jrt.camera import Camera, camera_rays
 from jrt.hits import Hits
-from jrt.kernels import DEFAULT_KERNEL, cross, dot
+from jrt.interaction import face_forward, surface_interaction
+from jrt.kernels import DEFAULT_KERNEL, dot
 from jrt.mesh import Mesh
 from jrt.normals import DEFAULT_CREASE_ANGLE, corner_normals
+from jrt.scene.assembly import default_lamp
+from jrt.sky import sky_rgb_by_row
 from jrt.trace import closest_hit, occluded
 
 ALBEDO = (0.86, 0.68, 0.46)  # sand
-SKY_TOP = (0.38, 0.55, 0.80)
-SKY_BOTTOM = (0.80, 0.86, 0.94)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,35 +60,16 @@ class RenderStats:
         )
 
 
-def default_lamp(mesh: Mesh, camera: Camera) -> np.ndarray:
-    """A lamp above the camera's left shoulder, well outside the mesh."""
-    lo, hi = mesh.bounds
-    centre = (lo + hi) / 2
-    eye = np.asarray(camera.eye, np.float32)
-    forward = centre - eye
-    right = np.cross(forward, np.asarray(camera.up, np.float32))
-    right /= np.linalg.norm(right)
-    return (eye - 0.6 * np.linalg.norm(forward) * right
-            + np.array([0, 1.2 * np.linalg.norm(forward), 0], np.float32)).astype(np.float32)
-
-
 @jax.jit
 def _shade_points(hits: Hits, origins, directions, faces, vertices, normals, lamp):
     """Hit points, shading normals, geometric normals and the direction to the lamp."""
     hit = hits.triangle >= 0
-    tri = jnp.maximum(hits.triangle, 0)
-    corners = faces[tri]
-    w = jnp.stack([1 - hits.u - hits.v, hits.u, hits.v], axis=-1)[..., None]
-    n = (normals[tri] * w).sum(axis=1)  # corner normals [F, 3, 3] at the barycentrics
-    p = vertices[corners]
-    point = (p * w).sum(axis=1)
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    ng = cross(e1, e2)
-    ng = ng / jnp.sqrt(jnp.maximum(dot(ng, ng), 1e-30))[:, None]
+    surface = surface_interaction(vertices, faces, hits.triangle, hits.u, hits.v, directions,
+                                  normals)
+    point = surface.point
     # Face the viewer: both normals point back against the incoming ray.
-    ng = jnp.where((dot(ng, directions) > 0)[:, None], -ng, ng)
-    n = n / jnp.sqrt(jnp.maximum(dot(n, n), 1e-30))[:, None]
-    n = jnp.where((dot(n, ng) < 0)[:, None], -n, n)
+    ng = face_forward(surface.geometric_normal, -directions)
+    n = face_forward(surface.shading_normal, ng)
     to_lamp = lamp[None, :] - point
     dist = jnp.sqrt(dot(to_lamp, to_lamp))
     l = to_lamp / dist[:, None]
@@ -96,13 +79,9 @@ def _shade_points(hits: Hits, origins, directions, faces, vertices, normals, lam
 def _compose(hit, n, l, lit, ambient, height, width):
     lambert = jnp.maximum(dot(n, l), 0.0) * lit
     shade = ambient + (1 - ambient) * lambert
-    # Explicit float32 and int32: the same values, and float32 under jax_enable_x64 too.
+    # Explicit float32: the same values, and float32 under jax_enable_x64 too.
     colour = jnp.asarray(ALBEDO, jnp.float32)[None, :] * shade[:, None]
-    rows = ((jnp.arange(height * width, dtype=jnp.int32) // width).astype(jnp.float32)
-            / max(height - 1, 1))
-    sky = (jnp.asarray(SKY_TOP, jnp.float32)[None, :] * (1 - rows)[:, None]
-           + jnp.asarray(SKY_BOTTOM, jnp.float32)[None, :] * rows[:, None])
-    image = jnp.where(hit[:, None], colour, sky)
+    image = jnp.where(hit[:, None], colour, sky_rgb_by_row(height, width))
     return image.reshape(height, width, 3)
 
 

@@ -5,9 +5,9 @@
     params["materials"]["glass"]["B"] = 0.01           # any continuous value of the scene
     batch = jax.vmap(render)(stacked_params)           # one program for every item
 
-The same tree as :func:`jrt.whitted.host_radiance` (:mod:`jrt.whitted` says what a ray does
-at a surface), with every level run inside one jitted program instead of one host round trip
-per level. ``params`` (:mod:`jrt.params`) holds the scene's continuous values keyed as in
+The same tree as :func:`jrt.host_tree.host_radiance` (:mod:`jrt.whitted` says what a ray
+does at a surface), with every level run inside one jitted program instead of one host round
+trip per level. ``params`` (:mod:`jrt.params`) holds the scene's continuous values keyed as in
 its TOML; everything that changes the program (features, image size, depth, ``spp``,
 kernel, structure, the level capacities) is fixed by :func:`renderer`, the jax-md habit of
 a constructor that returns a pure function. The camera rays are made from

@@ -11,9 +11,9 @@ the seed's ``couleur = kR·lancer(réfléchi) + kT·lancer(réfracté)``). Rays 
 (reverse light path, seed Théorème 2.2). At a surface a ray of weight ``w`` either ends or
 spawns children:
 
-* **miss**: adds ``w × background`` (``"black"``: 0; ``"sky"``: :func:`sky_rgb`, a vertical
-  gradient over the ray's *direction*, zenith :data:`jrt.render.SKY_TOP` to nadir
-  :data:`jrt.render.SKY_BOTTOM`, turned into the channels as a reflectance lit by the lamp
+* **miss**: adds ``w × background`` (``"black"``: 0; ``"sky"``: :func:`jrt.sky.sky_rgb`, a
+  vertical gradient over the ray's *direction*, zenith :data:`jrt.sky.SKY_TOP` to nadir
+  :data:`jrt.sky.SKY_BOTTOM`, turned into the channels as a reflectance lit by the lamp
   illuminant: ``rgb_to_reflectance(sky) × illuminant``);
 * **diffuse**: adds ``w × albedo × Σ_lamps lamp × (ambient + (1 - ambient) max(0, n·l) V)``,
   ``V`` the visibility of the lamp by a shadow ray (``jrt.occluded``, any hit before the
@@ -31,6 +31,7 @@ of the face's winding (outward for a closed, consistently oriented mesh such as 
 Directions use the shading normal ``n_s`` (the hit face's corner normals interpolated at its
 barycentrics, :func:`jrt.normals.corner_normals`); where it would send a child to the
 wrong side of the geometric surface (or faces away from the ray), that hit uses ``n_g``.
+Both come, with the hit point, from :func:`jrt.interaction.surface_interaction`.
 
 **Channels.** A scene with dispersion (a Cauchy ``B != 0``) is rendered spectrally, over
 ``settings.samples`` wavelength samples; since ``n`` depends on ``λ`` (seed, dispersion) each
@@ -55,11 +56,12 @@ code, a scene without mirrors no mirror branch, a scene without lamps no shadow 
 child whose weight (largest channel) is below ``settings.threshold`` is pruned, exactly
 (its weight is counted in ``stats.dropped_weight``). **Past the maximum depth** the children
 left are not traced: they contribute black (their weight is ``stats.truncated_weight``).
-:func:`host_radiance` is the same tree stepped from the host, one level and one
-:data:`CHUNK` of rays per device call, NumPy compaction between levels and every camera ray
-per wavelength sample: slower, and an independent route the tests compare the renderer
-with (and it can return the image at every depth, ``by_depth=True``: a render at depth
-``d`` is exactly the sum of levels ``0..d-1`` of any deeper render).
+:func:`jrt.host_tree.host_radiance` (also ``jrt.whitted.host_radiance``) is the same tree
+stepped from the host, one level and one :data:`CHUNK` of rays per device call, NumPy
+compaction between levels and every camera ray per wavelength sample: slower, and an
+independent route the tests compare the renderer with (and it can return the image at every
+depth, ``by_depth=True``: a render at depth ``d`` is exactly the sum of levels ``0..d-1`` of
+any deeper render).
 
 **Rays per pixel.** Per camera ray and wavelength sample, level ``d`` holds at
 most ``2^d`` rays with glass (each dielectric hit doubles, total internal reflection and
@@ -82,8 +84,8 @@ off the surface by pbrt-v4's error bound (Pharr, Jakob & Humphreys, *Physically 
 Rendering*, 4th ed., §6.8.5 "Bounding intersection point error" and §6.8.6 "Robust spawned
 ray origins", ``OffsetRayOrigin``): ``p_err = γ7 (|b0 v0| + |b1 v1| + |b2 v2|)`` per
 component, the origin moves by ``Σ|n_i| p_err_i`` along the geometric normal to the side the
-new ray goes to, each coordinate then rounded away with ``nextafter``. The offset scales with
-the coordinates, not with a scene size.
+new ray goes to, each coordinate then rounded away with ``nextafter``
+(:mod:`jrt.interaction`). The offset scales with the coordinates, not with a scene size.
 """
 
 from __future__ import annotations
@@ -103,10 +105,11 @@ import accel
 from accel.structure import Structure
 from jrt import optics
 from jrt import structure as _structure  # noqa: F401  (registers Structure as a pytree)
-from jrt.camera import Camera, camera_rays
-from jrt.kernels import _gamma, cross, dot
-from jrt.render import SKY_BOTTOM, SKY_TOP
+from jrt.camera import Camera
+from jrt.interaction import normalise, offset_ray_origin, surface_interaction
+from jrt.kernels import dot
 from jrt.scene import Features, Scene, SceneGeometry, assemble, load_scene
+from jrt.sky import SKY_BOTTOM, SKY_TOP, direction_weight, sky_blend, sky_rgb
 from jrt.spectral import (
     SpectralTables,
     encode_srgb,
@@ -115,7 +118,7 @@ from jrt.spectral import (
     spectral_tables,
     spectrum_to_srgb,
 )
-from jrt.trace import query_status, raise_on_status
+from jrt.trace import query_status
 
 #: Rays per call of the compiled level function (padded up to it).
 CHUNK = 1 << 15
@@ -150,55 +153,6 @@ class SceneArrays(NamedTuple):
     wavelengths: Float[Array, " c"]  # nm (RGB mode: nominal labels, unused)
     illuminant: Float[Array, " c"]  # the tables' lamp spectrum (ambient without lamps)
     ambient: Float[Array, ""]
-
-
-class Rays(NamedTuple):
-    """A level's rays, NumPy arrays (host side, between levels).
-
-    Attributes:
-        origins, directions: float32 [N, 3], unit directions.
-        weights: float32 [N, K], the product of the coefficients along the path.
-        pixels: int32 [N], row-major pixel index.
-        channels: int32 [N], wavelength sample index (spectral mode); 0 in RGB mode.
-        sources: int32 [N], the triangle the ray leaves (-1 for camera rays).
-    """
-
-    origins: np.ndarray
-    directions: np.ndarray
-    weights: np.ndarray
-    pixels: np.ndarray
-    channels: np.ndarray
-    sources: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.pixels.shape[0])
-
-    def take(self, index) -> Rays:
-        return Rays(*(a[index] for a in self))
-
-
-class Level(NamedTuple):
-    """What one level did to its rays (NumPy).
-
-    Attributes:
-        contributions: float32 [N, K], radiance each ray adds to its pixel and channel.
-        kinds: int32 [N], the kind code hit (:data:`KIND_CODES`), ``MISS`` (-1) for none.
-        tir: bool [N], total internal reflection at a dielectric hit.
-        triangles: int32 [N], the hit triangle (-1: a miss).
-        t: float32 [N], the hit distance (inf: a miss).
-        children: the spawned rays with nonzero weight (not yet pruned by the threshold).
-        parents: int32 [M], index of each child's parent in this level.
-        shadow_rays: number of shadow rays traced.
-    """
-
-    contributions: np.ndarray
-    kinds: np.ndarray
-    tir: np.ndarray
-    triangles: np.ndarray
-    t: np.ndarray
-    children: Rays
-    parents: np.ndarray
-    shadow_rays: int
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -302,18 +256,6 @@ class RenderStats:
 # --------------------------------------------------------------------------------------------
 # Preparing a scene (NumPy side)
 # --------------------------------------------------------------------------------------------
-
-
-def sky_rgb(directions: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
-    """Linear sRGB of the ``"sky"`` background seen along unit ``directions``.
-
-    ``w = (1 - d_y) / 2`` mixes :data:`jrt.render.SKY_TOP` (zenith, w = 0) into
-    :data:`jrt.render.SKY_BOTTOM` (nadir, w = 1): the vertical gradient of :mod:`jrt.render`,
-    over directions rather than image rows, so that reflected and refracted rays see it too.
-    """
-    d = jnp.asarray(directions, jnp.float32)
-    w = jnp.clip((1 - d[..., 1]) / 2, 0, 1)[..., None]
-    return jnp.asarray(SKY_TOP, jnp.float32) * (1 - w) + jnp.asarray(SKY_BOTTOM, jnp.float32) * w
 
 
 def _lamp_channels(spectrum: str, tables: SpectralTables, spectral: bool) -> np.ndarray:
@@ -445,22 +387,6 @@ class _Static:
     bundle: bool = False
 
 
-def _normalise(v):
-    return v / jnp.sqrt(jnp.maximum(dot(v, v), 1e-30))[..., None]
-
-
-def offset_origin(point, error, n, direction):
-    """pbrt-v4 §6.8.6, ``OffsetRayOrigin``: move ``point`` off the surface of unit normal
-    ``n`` by ``d = Σ|n_i| error_i`` to the side ``direction`` goes to, then round each moved
-    coordinate one float further away (``NextFloatUp/Down``)."""
-    d = dot(jnp.abs(n), error)
-    offset = d[..., None] * n
-    offset = jnp.where((dot(direction, n) < 0)[..., None], -offset, offset)
-    moved = point + offset
-    away = jnp.where(offset > 0, jnp.inf, jnp.where(offset < 0, -jnp.inf, moved))
-    return jnp.nextafter(moved, away)
-
-
 def _pick(table, channels, per_ray: bool):
     """[N, C] per-ray rows -> [N, K]: the ray's own wavelength sample (a spectral ray
     carrying one sample) or all of them (RGB, or a spectral bundle)."""
@@ -503,31 +429,24 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
     hits, status = query_status(structure, origins, directions, tmax=tmax,
                                 kernel=static.kernel, any_hit=False)
     hit = (hits.triangle >= 0) & valid
-    tri = jnp.maximum(hits.triangle, 0)
-    corners = scene.faces[tri]
-    p = scene.vertices[corners]  # [N, 3, 3]
-    b = jnp.stack([1 - hits.u - hits.v, hits.u, hits.v], axis=-1)[..., None]  # [N, 3, 1]
-    # The hit point from the barycentrics, not o + t d, and its error bound
-    # (pbrt-v4 §6.8.5, Triangle::InteractionFromIntersection: pError = γ7 Σ|b_i p_i|).
-    point = (b * p).sum(axis=1)
-    error = _gamma(7, jnp.float32) * jnp.abs(b * p).sum(axis=1)
-    ng_out = _normalise(cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
-    # Entering (from outside) when d · n_g < 0 with the winding's outward normal (seed,
-    # Proposition 3.2; jrt.optics.orient).
-    entering = dot(directions, ng_out) < 0
-    ng = jnp.where(entering[:, None], ng_out, -ng_out)  # facing the ray
-    ns_out = _normalise((b * scene.normals[tri]).sum(axis=1))  # corner normals at b
-    ns = jnp.where(entering[:, None], ns_out, -ns_out)
-    mat = scene.material[tri]
+    # The hit point from the barycentrics, not o + t d, its error bound and its normals
+    # (pbrt-v4 §6.8.5, Triangle::InteractionFromIntersection).
+    surface = surface_interaction(scene.vertices, scene.faces, hits.triangle, hits.u, hits.v,
+                                  directions, scene.normals)
+    point, error, entering = surface.point, surface.error, surface.entering
+    # Both normals facing the ray: the winding's outward ones when it enters.
+    ng = jnp.where(entering[:, None], surface.geometric_normal, -surface.geometric_normal)
+    ns = jnp.where(entering[:, None], surface.shading_normal, -surface.shading_normal)
+    mat = scene.material[jnp.maximum(hits.triangle, 0)]
     kind = jnp.where(hit, scene.kind[mat], MISS)
 
     contrib = jnp.zeros((n, k), jnp.float32)
     shadow_count = jnp.zeros((), jnp.int32)
     if static.sky:
-        w = jnp.clip((1 - directions[:, 1]) / 2, 0, 1)[:, None]  # as sky_rgb
+        # jrt.sky's gradient, its two ends turned into the channels (scene.sky).
         top = _pick(jnp.broadcast_to(scene.sky[0], (n, c)), channels, per_ray)
         bottom = _pick(jnp.broadcast_to(scene.sky[1], (n, c)), channels, per_ray)
-        background = top * (1 - w) + bottom * w
+        background = sky_blend(top, bottom, direction_weight(directions)[:, None])
         contrib = contrib + jnp.where((valid & ~hit)[:, None], weights * background, 0.0)
 
     if f.diffuse:
@@ -538,12 +457,12 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
             n_lamps = f.lamps
             # [N, L, 3]: from the hit point to each lamp.
             to_lamp = scene.lamp_positions[None, :, :] - point[:, None, :]
-            l_dir = _normalise(to_lamp)
+            l_dir = normalise(to_lamp)
             ng_l = jnp.broadcast_to(ng[:, None, :], l_dir.shape)
             cos = jnp.maximum(dot(jnp.broadcast_to(ns[:, None, :], l_dir.shape), l_dir), 0.0)
             # Light from below the geometric surface never reaches it.
             need = is_diffuse[:, None] & (dot(ng_l, l_dir) > 0) & (cos > 0)
-            start = offset_origin(jnp.broadcast_to(point[:, None, :], l_dir.shape),
+            start = offset_ray_origin(jnp.broadcast_to(point[:, None, :], l_dir.shape),
                                    jnp.broadcast_to(error[:, None, :], l_dir.shape),
                                    ng_l, l_dir)
             seg = scene.lamp_positions[None, :, :] - start
@@ -598,7 +517,7 @@ def _shade_chunk(structure, scene: SceneArrays, origins, directions, weights, ch
                                           weights, channels, key)
         child_channels = jnp.broadcast_to(channels[:, None], alive.shape)
     shape = dirs.shape
-    starts = offset_origin(jnp.broadcast_to(point[:, None, :], shape),
+    starts = offset_ray_origin(jnp.broadcast_to(point[:, None, :], shape),
                             jnp.broadcast_to(error[:, None, :], shape),
                             jnp.broadcast_to(ng[:, None, :], shape), dirs)
     return _ChunkOut(contrib, kind, tir, hits.triangle, hits.t, starts, dirs, wts, alive,
@@ -666,13 +585,8 @@ def _children(static: _Static, scene: SceneArrays, directions, ns, ng, entering,
 
 
 # --------------------------------------------------------------------------------------------
-# Levels (host side)
+# Rendering
 # --------------------------------------------------------------------------------------------
-
-#: Compiled level functions, keyed by the static arguments and the argument shapes: the
-#: whole render compiles once (and a second render of the same shapes not at all).
-_COMPILED: dict = {}
-
 
 def _static(setup: RenderSetup, mode: str) -> _Static:
     features = dataclasses.replace(setup.features, max_depth=0, counters=False)
@@ -684,34 +598,6 @@ def _static(setup: RenderSetup, mode: str) -> _Static:
 def _check_mode(mode: str) -> None:
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
-
-
-def _check_chunk(chunk) -> int:
-    if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
-        raise ValueError(f"chunk must be a positive integer (rays per call), got {chunk!r}")
-    return int(chunk)
-
-
-def _chunk_args(setup: RenderSetup, rays: Rays, start: int, chunk: int, key):
-    """The padded chunk ``rays[start:start + chunk]`` as device arrays."""
-    stop = min(start + chunk, len(rays))
-    m = stop - start
-    pad = chunk - m
-
-    def padded(a, fill=0):
-        a = a[start:stop]
-        if pad:
-            a = np.concatenate([a, np.full((pad, *a.shape[1:]), fill, a.dtype)])
-        return jnp.asarray(a)
-
-    directions = rays.directions[start:stop]
-    if pad:  # unit directions in the padding too: no NaN anywhere
-        directions = np.concatenate([directions, np.tile(np.float32([0, 0, 1]), (pad, 1))])
-    valid = np.zeros(chunk, bool)
-    valid[:m] = True
-    return (setup.device_structure, setup.arrays, padded(rays.origins),
-            jnp.asarray(directions), padded(rays.weights), padded(rays.channels),
-            jnp.asarray(valid), key), m
 
 
 def compiled_program(cache: dict, fn, args, timing: dict, **static):
@@ -728,101 +614,6 @@ def compiled_program(cache: dict, fn, args, timing: dict, **static):
         program = cache[signature] = fn.lower(*args, **static).compile()
         timing["compile"] = timing.get("compile", 0.0) + time.perf_counter() - start
     return program
-
-
-def shade_level(
-    setup: RenderSetup,
-    rays: Rays,
-    *,
-    mode: str = "tree",
-    key: Array | None = None,
-    chunk: int = CHUNK,
-    _timing: dict | None = None,
-) -> Level:
-    """Trace one level: closest hits of ``rays``, their contributions and their children.
-
-    Children with zero weight (a refracted ray under total internal reflection, the
-    children of a black mirror) are left out; none is pruned by the threshold here.
-    ``key`` (a ``jax.random`` key) drives the branch choice in ``mode="sampled"``.
-    """
-    _check_mode(mode)
-    chunk = _check_chunk(chunk)
-    static = _static(setup, mode)
-    timing = {} if _timing is None else _timing
-    if key is None:
-        key = jax.random.PRNGKey(0)
-    parts = []
-    for index, start in enumerate(range(0, len(rays), chunk)):
-        args, m = _chunk_args(setup, rays, start, chunk, jax.random.fold_in(key, index))
-        out = compiled_program(_COMPILED, _shade_chunk, args, timing, static=static)(*args)
-        raise_on_status(out.status)
-        parts.append(_ChunkOut(*(np.asarray(x)[:m] if np.ndim(x) else int(x) for x in out)))
-    return level_from_chunks(parts, rays, setup.ray_channels)
-
-
-def level_from_chunks(parts: list, rays: Rays, k: int) -> Level:
-    """One level's :class:`Level` from its chunks' outputs (host arrays, padding removed)
-    for the level's ``rays``: the chunks concatenated, the live children gathered
-    parent-major (children stay in their parents' order: coherent chunks next level)."""
-    if not parts:
-        return Level(np.zeros((0, k), np.float32), np.zeros(0, np.int32), np.zeros(0, bool),
-                     np.zeros(0, np.int32), np.zeros(0, np.float32), _empty_rays(k),
-                     np.zeros(0, np.int32), 0)
-    arrays = len(_ChunkOut._fields) - 2  # then shadow_rays (summed), status (ORed)
-    out = _ChunkOut(*(np.concatenate(x) if i < arrays else
-                      (sum(x) if i == arrays else functools.reduce(np.bitwise_or, x))
-                      for i, x in enumerate(zip(*parts, strict=True))))
-    parent, slot = np.nonzero(out.child_alive)
-    children = Rays(
-        origins=out.child_origins[parent, slot], directions=out.child_directions[parent, slot],
-        weights=out.child_weights[parent, slot], pixels=rays.pixels[parent],
-        channels=out.child_channels[parent, slot],
-        sources=out.triangles[parent].astype(np.int32))
-    return Level(out.contributions, out.kinds, out.tir, out.triangles, out.t, children,
-                 parent.astype(np.int32), int(out.shadow_rays))
-
-
-def _empty_rays(k: int) -> Rays:
-    return Rays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                np.zeros((0, k), np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32),
-                np.zeros(0, np.int32))
-
-
-def camera_level(setup: RenderSetup, camera: Camera, spp: int = 1, *,
-                 mode: str = "tree") -> Rays:
-    """Level 0, from the eye (seed Théorème 2.2), pixel-major: ``spp`` rays per pixel, in
-    the tree through its :func:`jrt.camera.subpixel_offsets` (stratified anti-aliasing; 1:
-    the centre), in the sampled mode all through its centre (``spp`` paths); in spectral
-    mode each replicated per wavelength sample (weights [N, 1]). (The renderer makes its
-    own camera rays, as bundles: :mod:`jrt.wavefront`.)"""
-    _check_mode(mode)
-    subpixel = spp if mode == "tree" else 1
-    origins, directions = (np.asarray(a) for a in camera_rays(camera, subpixel))
-    pixels = camera.num_rays
-    rays = np.repeat(np.arange(pixels * subpixel), spp // subpixel)  # [P * spp]
-    pixel = np.repeat(np.arange(pixels, dtype=np.int32), spp)
-    copies = setup.channels if setup.spectral else 1
-    index = np.repeat(rays, copies)
-    channels = (np.tile(np.arange(copies, dtype=np.int32), pixels * spp) if setup.spectral
-                else np.zeros(index.size, np.int32))
-    return Rays(
-        origins=origins[index], directions=directions[index],
-        weights=np.ones((index.size, setup.ray_channels), np.float32),
-        pixels=np.repeat(pixel, copies), channels=channels,
-        sources=np.full(index.shape, -1, np.int32))
-
-
-def _accumulate(radiance: np.ndarray, rays: Rays, contributions: np.ndarray,
-                spectral: bool) -> None:
-    """radiance [P, C] += each ray's contribution at its pixel (and wavelength sample)."""
-    p, c = radiance.shape
-    if spectral:
-        index = rays.pixels.astype(np.int64) * c + rays.channels
-        values = contributions[:, 0]
-    else:
-        index = (rays.pixels.astype(np.int64)[:, None] * c + np.arange(c)).ravel()
-        values = contributions.ravel()
-    radiance += np.bincount(index, weights=values, minlength=p * c).reshape(p, c)
 
 
 def render_arguments(
@@ -891,80 +682,6 @@ def renderer(scene: RenderSetup | Scene | str | Path, **options):
     return wavefront.renderer(scene, **options)
 
 
-def host_radiance(
-    scene_or_setup: RenderSetup | Scene | str | Path,
-    *,
-    width: int | None = None,
-    height: int | None = None,
-    max_depth: int | None = None,
-    samples: int | None = None,
-    mode: str = "tree",
-    spp: int = 1,
-    key: Array | None = None,
-    chunk: int = CHUNK,
-    features: Features | None = None,
-    threshold: float | None = None,
-    by_depth: bool = False,
-) -> tuple[Float[np.ndarray, "h w c"] | Float[np.ndarray, "d h w c"], RenderStats]:
-    """The reference tree, stepped level by level from the host (NumPy compaction and
-    accumulation in float64 between levels, every camera ray per wavelength sample): what
-    :func:`render_radiance` computes, by an independent route, and the tests compare it
-    with. Slower (one device round trip per level and per ``chunk`` rays).
-
-    Returns float64 ``[H, W, C]``, or with ``by_depth`` ``[D, H, W, C]``: entry ``d`` the
-    image rendered at depth ``d + 1`` (levels ``0..d``), and the :class:`RenderStats`.
-    """
-    start = time.perf_counter()
-    chunk = _check_chunk(chunk)
-    setup, depth, threshold = render_arguments(
-        scene_or_setup, max_depth=max_depth, samples=samples, mode=mode, spp=spp,
-        features=features, threshold=threshold)
-    camera = setup.camera(width, height)
-    if key is None:
-        key = jax.random.PRNGKey(0)
-    timing: dict = {}
-    rays = camera_level(setup, camera, spp, mode=mode)
-    camera_rays_count = len(rays)
-    pixels, c = camera.num_rays, setup.channels
-    radiance = np.zeros((pixels, c), np.float64)
-    snapshots = []
-    per_level, shadow_rays, dropped, truncated = [], 0, 0.0, 0.0
-    k = setup.ray_channels
-    for level in range(depth):
-        if len(rays) == 0:
-            per_level.append(0)
-            if by_depth:
-                snapshots.append(radiance.copy())
-            continue
-        per_level.append(len(rays))
-        result = shade_level(setup, rays, mode=mode, key=jax.random.fold_in(key, level),
-                             chunk=chunk, _timing=timing)
-        shadow_rays += result.shadow_rays
-        _accumulate(radiance, rays, result.contributions, setup.spectral)
-        if by_depth:
-            snapshots.append(radiance.copy())
-        children = result.children
-        strength = children.weights.max(axis=1) if len(children) else np.zeros(0)
-        if level == depth - 1:  # past the maximum depth: black
-            truncated += float(children.weights.sum()) / k
-            rays = _empty_rays(k)
-            break
-        keep = strength >= threshold
-        dropped += float(children.weights[~keep].sum()) / k
-        rays = children.take(np.flatnonzero(keep))
-    per_level += [0] * (depth - len(per_level))
-    radiance /= spp
-    shape = (camera.height, camera.width, c)
-    out = (np.stack(snapshots) / spp).reshape(-1, *shape) if by_depth else radiance.reshape(shape)
-    stats = RenderStats(
-        width=camera.width, height=camera.height, mode=mode, channels=c, spp=spp,
-        max_depth=depth, rays_per_level=tuple(per_level), shadow_rays=shadow_rays,
-        seconds=time.perf_counter() - start, compile_seconds=timing.get("compile", 0.0),
-        dropped_weight=dropped, truncated_weight=truncated,
-        rays_per_pixel_by_depth=tuple(r / camera_rays_count for r in per_level))
-    return out, stats
-
-
 def to_srgb(radiance: Float[np.ndarray, "*batch c"], setup: RenderSetup) -> np.ndarray:
     """Encoded sRGB float32 [..., 3] in [0, 1] of linear radiance over the setup's channels:
     spectral mode through XYZ (:func:`jrt.spectral.spectrum_to_srgb`), RGB mode by the
@@ -1020,33 +737,32 @@ def render_scene(
     return image, dataclasses.replace(stats, seconds=stats.seconds + time.perf_counter() - start)
 
 
-def chunk_program(setup: RenderSetup, *, mode: str = "tree", chunk: int = 1024) -> str:
-    """The jaxpr of the level function for this setup, as text: what a render compiles."""
-    _check_mode(mode)
-    rays = camera_level(setup, setup.camera(4, 4))
-    args, _ = _chunk_args(setup, rays, 0, _check_chunk(chunk), jax.random.PRNGKey(0))
-    fn = functools.partial(_shade_chunk.__wrapped__, static=_static(setup, mode))
-    return str(jax.make_jaxpr(fn)(*args))
+#: The host-stepped reference tree's names, defined in :mod:`jrt.host_tree` (which imports
+#: this module) and reached from here too: ``jrt.whitted.host_radiance``.
+_HOST_TREE = frozenset({"Level", "Rays", "camera_level", "chunk_program", "host_radiance",
+                        "level_from_chunks", "shade_level"})
+
+
+def __getattr__(name: str):
+    if name in _HOST_TREE:
+        from jrt import host_tree
+
+        return getattr(host_tree, name)
+    raise AttributeError(f"module 'jrt.whitted' has no attribute {name!r}")
 
 
 __all__ = [
     "CHUNK",
     "KIND_CODES",
     "MODES",
-    "Level",
-    "Rays",
     "RenderSetup",
     "RenderStats",
     "SceneArrays",
-    "camera_level",
-    "chunk_program",
-    "host_radiance",
     "prepare",
     "render_arguments",
     "render_radiance",
     "renderer",
     "render_scene",
-    "shade_level",
     "sky_rgb",
     "to_srgb",
 ]

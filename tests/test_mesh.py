@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import re
 import warnings
 
@@ -473,3 +474,97 @@ def test_triangle_files_load_without_a_note(tmp_path, suffix):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert load_mesh(path).faces.shape == (4, 3)
+
+
+# --------------------------------------------------------------------------------------
+# PLY triangle strips ('tristrips'): read as their triangles
+# --------------------------------------------------------------------------------------
+
+# A ribbon of unit squares in z = 0 (vertices 0-5, zig-zag: bottom, top, bottom, ...) and a
+# unit square in z = 1 (vertices 6-9), as triangle strips: the ribbon's strip, -1, the
+# square's strip; a second row whose only triangles repeat a vertex (a join).
+STRIP_V = np.array([[0, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 0], [2, 0, 0], [2, 1, 0],
+                    [0, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 1]], np.float64)
+STRIP_ROWS = [[0, 1, 2, 3, 4, 5, -1, 6, 7, 8, 9], [3, 3, 6]]
+# Triangle j of a strip: (v_j, v_j+1, v_j+2), its first two swapped for odd j (counted from
+# the strip's (re)start), so that all keep one orientation.
+STRIP_F = [[0, 1, 2], [2, 1, 3], [2, 3, 4], [4, 3, 5], [6, 7, 8], [8, 7, 9]]
+
+
+def _strip_ply(fmt: str, vertices=STRIP_V, rows=STRIP_ROWS) -> bytes:
+    header = (f"ply\nformat {fmt} 1.0\ncomment triangle strips\n"
+              f"element vertex {len(vertices)}\nproperty float x\nproperty float y\n"
+              f"property float z\nproperty uchar confidence\n"
+              f"element tristrips {len(rows)}\nproperty list int int vertex_indices\n"
+              "end_header\n").encode()
+    if fmt == "ascii":
+        body = "".join(" ".join(f"{x:g}" for x in v) + " 255\n" for v in vertices)
+        body += "".join(f"{len(r)} " + " ".join(map(str, r)) + "\n" for r in rows)
+        return header + body.encode()
+    order = "<" if fmt == "binary_little_endian" else ">"
+    body = b"".join(np.asarray(v, order + "f4").tobytes() + b"\xff" for v in vertices)
+    body += b"".join(np.array([len(r), *r], order + "i4").tobytes() for r in rows)
+    return header + body
+
+
+def test_strip_triangles_alternate_and_restart():
+    faces, skipped = jrt.mesh.strip_triangles(STRIP_ROWS)
+    np.testing.assert_array_equal(faces, STRIP_F)
+    assert skipped == 1  # (3, 3, 6)
+    # A turn inside a strip (a repeated index) keeps the alternation going: triangle 3 of
+    # 0 1 2 2 3 4 is odd, so (3, 2, 4); triangles 1 and 2 repeat vertex 2.
+    faces, skipped = jrt.mesh.strip_triangles([[0, 1, 2, 2, 3, 4]])
+    np.testing.assert_array_equal(faces, [[0, 1, 2], [3, 2, 4]])
+    assert skipped == 2
+    assert jrt.mesh.strip_triangles([[0, 1], [-1], []])[0].shape == (0, 3)
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+def test_ply_triangle_strips_are_read_as_triangles(tmp_path, fmt):
+    path = tmp_path / "strips.ply"
+    path.write_bytes(_strip_ply(fmt))
+    with pytest.warns(MeshWarning, match=r"strips\.ply: read 2 triangle strips \('tristrips'\) "
+                      r"as 6 triangles; face indices count them in strip order \(1 triangle "
+                      r"with a repeated vertex"):
+        mesh = load_mesh(path)
+    np.testing.assert_array_equal(mesh.vertices, STRIP_V.astype(np.float32))
+    np.testing.assert_array_equal(mesh.faces, STRIP_F)
+    # Independently of the strip rule: one orientation (every normal along -z, as the
+    # first triangle's), and the triangles cover the 2 x 1 ribbon and the unit square once.
+    corners = mesh.vertices[mesh.faces].astype(np.float64)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    np.testing.assert_array_equal(normal[:, :2], 0)
+    assert (normal[:, 2] < 0).all()
+    lower = corners[:, 0, 2] == 0
+    assert -0.5 * normal[lower, 2].sum() == 2.0 and -0.5 * normal[~lower, 2].sum() == 1.0
+
+
+def test_gzipped_ply_triangle_strips(tmp_path):
+    path = tmp_path / "strips.ply.gz"
+    path.write_bytes(gzip.compress(_strip_ply("binary_little_endian")))
+    with pytest.warns(MeshWarning, match="tristrips"):
+        np.testing.assert_array_equal(load_mesh(path).faces, STRIP_F)
+
+
+@pytest.mark.parametrize("fmt, cut", [("binary_little_endian", 6), ("ascii", 8)])
+def test_truncated_ply_triangle_strips_name_what_is_unread(tmp_path, fmt, cut):
+    path = tmp_path / "cut.ply"
+    path.write_bytes(_strip_ply(fmt)[:-cut])
+    with pytest.raises(MeshError, match=r"cut\.ply: PLY with 10 vertices and no 'face' "
+                       r"element; its triangle strips \('tristrips'\) could not be read: the "
+                       r"file ends inside element 'tristrips'; convert the strips to faces"):
+        load_mesh(path)
+
+
+@pytest.mark.parametrize("faces, shown", [("", "no 'face' element"),
+                                          ("element face 0\nproperty list uchar int "
+                                           "vertex_indices\n", "an empty 'face' element")])
+def test_ply_without_faces_or_strips_says_what_it_has(tmp_path, faces, shown):
+    path = tmp_path / "points.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                    f"property float y\nproperty float z\n{faces}end_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n")
+    with pytest.raises(MeshError, match=rf"points\.ply: PLY with 3 vertices and {shown} \(its "
+                       r"elements: vertex \(3\).*\): no triangles to trace; jrt reads triangles "
+                       r"from a 'face' element, or triangle strips from a 'tristrips' element"):
+        load_mesh(path)

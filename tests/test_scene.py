@@ -1,10 +1,14 @@
-"""Scenes: built-ins, features, the TOML schema's round trip, error messages, assembly."""
+"""Scenes: built-ins, features, the TOML schema's round trip, error messages, assembly,
+and the package's layering (no renderer imported by the scene layer)."""
 
 from __future__ import annotations
 
 import math
+import shutil
+import subprocess
 import sys
 import types
+from importlib import resources
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +17,7 @@ import pytest
 
 import jrt  # noqa: F401  (XLA flags before JAX starts)
 from jrt.camera import Camera
+from jrt.mesh import mesh_from_arrays
 from jrt.scene import (
     BUILTIN_SCENES,
     Features,
@@ -22,6 +27,7 @@ from jrt.scene import (
     load_scene,
     parse_scene,
 )
+from jrt.scene.assembly import default_lamp
 
 # Cauchy A, B (µm²): used only if jrt.optics (the catalogue's home) is absent.
 _FALLBACK_GLASSES = {
@@ -106,6 +112,45 @@ def test_builtin_glass_is_bk7_with_dispersion(glasses):
     assert glass.index_at(589.0) == pytest.approx(a + b / 0.589**2)
     n = glass.index_at(np.array([400.0, 700.0]))
     assert n[0] > n[1] > 1.5  # normal dispersion: blue bends more
+
+
+def test_builtin_scenes_are_the_shipped_files(tmp_path):
+    """Each jrt/scene/builtin/NAME.toml is the built-in NAME, and a copy of it loaded as a
+    user's file is the same scene (mesh names stay shipped names, not paths)."""
+    folder = resources.files("jrt.scene").joinpath("builtin")
+    files = sorted(f.name for f in folder.iterdir() if f.name.endswith(".toml"))
+    assert files == [f"{name}.toml" for name in sorted(BUILTIN_SCENES)]
+    assert list(BUILTIN_SCENES) == sorted(BUILTIN_SCENES)  # the order error messages list
+    for name in BUILTIN_SCENES:
+        text = folder.joinpath(f"{name}.toml").read_text(encoding="utf-8")
+        assert builtin_toml(name) == text
+        with resources.as_file(folder.joinpath(f"{name}.toml")) as path:
+            copy = shutil.copy(path, tmp_path / f"{name}.toml")
+        assert load_scene(copy) == load_scene(name)
+
+
+def test_scene_layer_imports_no_renderer():
+    """jrt.scene sits below the renderers: importing it loads none of them."""
+    renderers = ("jrt.render", "jrt.whitted", "jrt.wavefront", "jrt.batch")
+    code = ("import sys, jrt.scene; "
+            f"print(' '.join(m for m in {renderers!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == ""
+
+
+def test_default_lamp_closed_form():
+    # Box centre at the origin, eye on +z at distance d = 10: forward = (0, 0, -10),
+    # forward x up = (10, 0, 0), so the lamp is eye - 0.6 d x + 1.2 d y = (-6, 12, 10).
+    mesh = mesh_from_arrays([(-1.0, -1.0, -1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0),
+                             (1.0, 1.0, 1.0)], TETRA_FACES)
+    camera = Camera(eye=(0.0, 0.0, 10.0), target=(0.0, 0.0, 0.0), width=8, height=8)
+    lamp = default_lamp(mesh, camera)
+    assert lamp.dtype == np.float32
+    np.testing.assert_allclose(lamp, [-6.0, 12.0, 10.0], rtol=1e-6)
+    import jrt.render  # the Lambert renderer uses the same function
+
+    assert jrt.render.default_lamp is default_lamp
 
 
 def test_features_are_static_jit_arguments():

@@ -1,5 +1,5 @@
 """The renderer (jrt.wavefront: every level of the tree in one compiled program, spectral
-camera rays as bundles) against the host-stepped reference tree (jrt.whitted.host_radiance),
+camera rays as bundles) against the host-stepped reference tree (jrt.host_tree.host_radiance),
 which the optics tests check against closed forms.
 
 The 19k camel, small images. Each ray's path is the same computation in both, so the images
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jrt import wavefront, whitted
+from jrt import host_tree, wavefront, whitted
 from jrt.scene import builtin_toml, parse_scene
 
 SIZE = (48, 36)
@@ -35,7 +35,7 @@ def setups():
 @pytest.fixture(scope="module")
 def host(setups):
     """The host-stepped renders, the reference."""
-    return {name: whitted.host_radiance(setup, width=SIZE[0], height=SIZE[1],
+    return {name: host_tree.host_radiance(setup, width=SIZE[0], height=SIZE[1],
                                         max_depth=DEPTH, chunk=4096)
             for name, setup in setups.items()}
 

@@ -17,10 +17,10 @@ import pytest
 import trimesh
 from skimage import io
 
-from jrt import optics, wavefront, whitted
+from jrt import host_tree, optics, wavefront, whitted
 from jrt.cli import main
-from jrt.render import SKY_BOTTOM, SKY_TOP
 from jrt.scene import BUILTIN_SCENES, builtin_toml, parse_scene
+from jrt.sky import SKY_BOTTOM, SKY_TOP
 from jrt.spectral import rgb_to_reflectance, spectrum_to_xyz
 
 CHUNK = 4096  # rays per compiled call in these tests: small images
@@ -43,8 +43,8 @@ def camel_scene(name="glass-camel", **replace):
 
 def primary_kinds(setup, width, height):
     """Kind code hit by each pixel's camera ray (-1: background), [H, W]."""
-    rays = whitted.camera_level(setup, setup.camera(width, height))
-    level = whitted.shade_level(setup, rays, chunk=CHUNK)
+    rays = host_tree.camera_level(setup, setup.camera(width, height))
+    level = host_tree.shade_level(setup, rays, chunk=CHUNK)
     copies = setup.channels if setup.spectral else 1
     return level.kinds[::copies].reshape(height, width)
 
@@ -58,6 +58,16 @@ def glass19k():
     return whitted.prepare(camel_scene(), samples=4)
 
 
+def test_the_host_tree_is_reached_from_jrt_whitted():
+    from jrt.whitted import host_radiance
+
+    assert host_radiance is host_tree.host_radiance
+    for name in host_tree.__all__:
+        assert getattr(whitted, name) is getattr(host_tree, name)
+    with pytest.raises(AttributeError, match="no_such_name"):
+        whitted.no_such_name  # noqa: B018
+
+
 # --------------------------------------------------------------------------- what is compiled
 
 
@@ -65,11 +75,11 @@ def test_opaque_scene_compiles_no_optics_and_matches_the_general_path(monkeypatc
     scene = camel_scene("camel")
     setup = whitted.prepare(scene)
     assert not setup.features.dielectric and not setup.features.mirror
-    program = whitted.chunk_program(setup)
+    program = host_tree.chunk_program(setup)
     for name in ("refract", "fresnel", "cauchy", "reflect"):
         assert f"name={name}" not in program
     general = dataclasses.replace(setup.features, dielectric=True, mirror=True)
-    assert "name=refract" in whitted.chunk_program(
+    assert "name=refract" in host_tree.chunk_program(
         dataclasses.replace(setup, features=general))
 
     def boom(*args, **kwargs):
@@ -99,7 +109,7 @@ def test_dispersion_decides_the_channels(glass19k):
     _, stats = whitted.render_scene(glass19k, width=16, height=12, max_depth=2)
     # One camera ray per pixel carries the 4 samples; the host tree traces one per sample.
     assert stats.channels == 4 and stats.rays_per_level[0] == 16 * 12
-    _, host = whitted.host_radiance(glass19k, width=16, height=12, max_depth=2)
+    _, host = host_tree.host_radiance(glass19k, width=16, height=12, max_depth=2)
     assert host.channels == 4 and host.rays_per_level[0] == 16 * 12 * 4
     assert stats.rays_per_level[1] == host.rays_per_level[1]  # they part at the glass
 
@@ -191,7 +201,7 @@ def synthetic(tmp_path_factory):
 #: wavelength sample in rays_per_level[0]: a bundle counts once).
 TREES = {
     "device": (lambda setup, **kw: whitted.render_radiance(setup, **kw), "bundles"),
-    "host": (lambda setup, **kw: whitted.host_radiance(setup, chunk=CHUNK, **kw), "rays"),
+    "host": (lambda setup, **kw: host_tree.host_radiance(setup, chunk=CHUNK, **kw), "rays"),
 }
 
 
@@ -246,8 +256,8 @@ def test_mirror_reflects_the_sky_times_its_reflectance(synthetic):
     sky of the camera ray's own direction, times the mirror's reflectance spectrum."""
     size = 15
     setup = synthetic(eye=(10, 0, -15), target=(10, 0, -10), vfov=30.0, size=size, depth=2)
-    rays = whitted.camera_level(setup, setup.camera())
-    level = whitted.shade_level(setup, rays, chunk=CHUNK)
+    rays = host_tree.camera_level(setup, setup.camera())
+    level = host_tree.shade_level(setup, rays, chunk=CHUNK)
     mirror = (level.kinds == whitted.KIND_CODES["mirror"]).reshape(size * size, -1)[:, 0]
     directions = rays.directions[:: setup.channels]
     upper = mirror & (directions[:, 1] >= 0)  # reflections that never reach the floor
@@ -255,7 +265,7 @@ def test_mirror_reflects_the_sky_times_its_reflectance(synthetic):
     rho = np.asarray(rgb_to_reflectance(np.array([0.9, 0.5, 0.2]), setup.tables), np.float64)
     sky = (np.asarray(rgb_to_reflectance(sky_rgb(directions), setup.tables), np.float64)
            * np.asarray(setup.tables.illuminant, np.float64))
-    radiance, _ = whitted.host_radiance(setup, chunk=CHUNK)
+    radiance, _ = host_tree.host_radiance(setup, chunk=CHUNK)
     radiance = radiance.reshape(size * size, -1)
     np.testing.assert_allclose(radiance[upper], rho * sky[upper], rtol=1e-4, atol=1e-7)
     # Around the plate the camera sees the black wall: nothing.
@@ -286,11 +296,11 @@ def test_white_floor_under_a_d65_lamp_is_white(synthetic, tree):
 def test_dielectric_conserves_weight(glass19k):
     """Threshold 0: the children of a dielectric hit weigh R + T = 1 times their parent;
     under total internal reflection one child carries the parent's whole weight."""
-    rays = whitted.camera_level(glass19k, glass19k.camera(24, 18))
+    rays = host_tree.camera_level(glass19k, glass19k.camera(24, 18))
     glass = whitted.KIND_CODES["dielectric"]
     seen_tir = 0
     for _ in range(3):
-        level = whitted.shade_level(glass19k, rays, chunk=CHUNK)
+        level = host_tree.shade_level(glass19k, rays, chunk=CHUNK)
         at_glass = level.kinds == glass
         kids = level.children
         total = np.zeros(len(rays))
@@ -308,7 +318,7 @@ def test_dielectric_conserves_weight(glass19k):
 
 
 def test_depth_converges(glass19k):
-    images, stats = whitted.host_radiance(glass19k, width=32, height=24, max_depth=8,
+    images, stats = host_tree.host_radiance(glass19k, width=32, height=24, max_depth=8,
                                             chunk=CHUNK, by_depth=True)
     encoded = whitted.to_srgb(images, glass19k)
     diffs = [float(np.abs(encoded[d + 1] - encoded[d]).mean()) for d in range(7)]
@@ -318,7 +328,7 @@ def test_depth_converges(glass19k):
     assert diffs[-1] < diffs[0] / 4
     assert all(r <= 2**d for d, r in enumerate(stats.rays_per_pixel_by_depth))
     # A render at depth 3 is levels 0..2 of the deeper one.
-    three, _ = whitted.host_radiance(glass19k, width=32, height=24, max_depth=3,
+    three, _ = host_tree.host_radiance(glass19k, width=32, height=24, max_depth=3,
                                        chunk=CHUNK)
     np.testing.assert_allclose(three, images[2], rtol=1e-6, atol=1e-9)
 
@@ -357,12 +367,12 @@ def test_secondary_rays_leave_their_surface(glass19k, scale):
         camel_scene(**{'material = "glass"': f'material = "glass"\nscale = {scale}'}),
         samples=4)
     size = setup.geometry.mesh.diagonal
-    rays = whitted.camera_level(setup, setup.camera(32, 24))
-    level1 = whitted.shade_level(setup, rays, chunk=CHUNK).children
-    level0 = whitted.shade_level(setup, rays, chunk=CHUNK)
+    rays = host_tree.camera_level(setup, setup.camera(32, 24))
+    level1 = host_tree.shade_level(setup, rays, chunk=CHUNK).children
+    level0 = host_tree.shade_level(setup, rays, chunk=CHUNK)
     level1 = level0.children
     assert len(level1) > 500
-    level2 = whitted.shade_level(setup, level1, chunk=CHUNK)
+    level2 = host_tree.shade_level(setup, level1, chunk=CHUNK)
     own = level2.triangles == level1.sources
     near = own & (level2.t < 1e-3 * size)
     print(f"\nscale {scale:g}: {len(level1)} level-1 rays, {own.sum()} hit their own "
@@ -379,10 +389,10 @@ def test_secondary_rays_leave_their_surface(glass19k, scale):
 
 def test_sampled_mode_converges_to_the_tree(glass19k):
     size = dict(width=24, height=18, max_depth=4, chunk=CHUNK, threshold=0.0)
-    tree, tree_stats = whitted.host_radiance(glass19k, **size)
+    tree, tree_stats = host_tree.host_radiance(glass19k, **size)
     errors = []
     for spp in (2, 8, 32):
-        sampled, stats = whitted.host_radiance(glass19k, mode="sampled", spp=spp,
+        sampled, stats = host_tree.host_radiance(glass19k, mode="sampled", spp=spp,
                                                  key=jax.random.PRNGKey(spp), **size)
         # A path never branches: each level has at most the rays of the level before.
         levels = stats.rays_per_level
@@ -402,7 +412,7 @@ def test_every_structure_gives_the_same_image(glass19k):
         setup = glass19k if name == "bvh" else whitted.prepare(scene, samples=4)
         assert setup.structure.kind == name
         # The host tree: a smaller program to compile per structure, the same traversals.
-        images[name], _ = whitted.host_radiance(setup, width=24, height=18, max_depth=3)
+        images[name], _ = host_tree.host_radiance(setup, width=24, height=18, max_depth=3)
     np.testing.assert_array_equal(images["grid"], images["bvh"])
     np.testing.assert_array_equal(images["kdtree"], images["bvh"])
 

@@ -1,9 +1,9 @@
-"""Scenes: TOML files (or built-in names) into a validated, frozen description, and from it
-the static features that decide what the renderer compiles.
+"""Scene files: TOML text (or a built-in scene's name) into a validated :class:`Scene`,
+and a scene back to TOML.
 
-NumPy side only: nothing here is traced by JAX. The way in is :func:`load_scene`; the
-way to arrays is :func:`assemble`; ``scene.features()`` is a hashable record meant as a
-static argument to ``jax.jit``.
+The way in is :func:`load_scene` (a built-in name or a file) or :func:`parse_scene` (text);
+the way out is :func:`dump_scene` (``Scene.to_toml``), which :func:`parse_scene` reads back
+to an equal scene.
 
 The schema (every table and field optional unless marked *required*; y is up)::
 
@@ -40,7 +40,8 @@ The schema (every table and field optional unless marked *required*; y is up)::
     # cauchy = [1.5046, 0.0042]           #   or n(λ) = A + B/λ², A in (1, 5], B in [0, 1] µm²
 
     [[lamps]]                             # zero or more point lamps
-    position = "auto"                     # or [x, y, z]; "auto": jrt.render.default_lamp
+    position = "auto"                     # or [x, y, z]; "auto": above the camera
+                                          #   (jrt.scene.assembly.default_lamp)
     intensity = 1.0                       # > 0, a scale on the lamp's contribution
     spectrum = "D65"                      # an illuminant: D65, D50, A, E, or another
                                           #   name of colour.SDS_ILLUMINANTS
@@ -76,354 +77,39 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NoReturn
 
-import numpy as np
-
 import accel
-from jrt.camera import FRAME_MARGIN, Camera, frame_mesh
-from jrt.data import MESHES, camel_path
+from jrt.camera import FRAME_MARGIN
+from jrt.data import MESHES
 from jrt.kernels import DEFAULT_KERNEL, KERNELS
-from jrt.mesh import SUFFIXES, Mesh, MeshError, load_mesh, mesh_from_arrays, mesh_suffix
-from jrt.normals import DEFAULT_CREASE_ANGLE, corner_normals
-
-Vec3 = tuple[float, float, float]
-
-KINDS = ("diffuse", "mirror", "dielectric")
-#: The Fresnel coefficients of a dielectric: jrt.optics.fresnel or jrt.optics.schlick.
-FRESNEL_MODELS = ("exact", "schlick")
-BACKGROUNDS = ("black", "sky")
-#: Common illuminant names for a lamp's ``spectrum``; any other name of colour-science's
-#: ``colour.SDS_ILLUMINANTS`` is accepted too (checked lazily, importing colour).
-ILLUMINANTS = ("D65", "D50", "A", "E")
-INDEX_RANGE = (1.0, 5.0)  # a constant index or Cauchy's A: (1, 5]
-CAUCHY_B_RANGE = (0.0, 1.0)  # µm², [0, 1]
-MAX_DEPTH = 16
-MAX_SAMPLES = 256
-MAX_PIXELS = 16384
-
-
-class SceneError(ValueError):
-    """A scene that cannot be rendered: names the file, the field, the value and the rule."""
-
-
-# --------------------------------------------------------------------------- data model
-
-
-@dataclasses.dataclass(frozen=True)
-class Material:
-    """A surface's optics.
-
-    Attributes:
-        name: the key under ``[materials]``.
-        kind: ``"diffuse"`` (Lambert), ``"mirror"`` or ``"dielectric"`` (Fresnel glass).
-        albedo: diffuse only: RGB in [0, 1].
-        reflectance: mirror only: RGB in [0, 1].
-        index: dielectric with a constant refractive index.
-        glass: dielectric from the catalogue ``jrt.optics.GLASSES`` (its canonical name).
-        cauchy: dielectric with n(λ) = A + B / λ², λ in µm, B in µm² (Cauchy's law, seed
-            §3); filled from the catalogue when ``glass`` is given.
-    """
-
-    name: str
-    kind: str
-    albedo: Vec3 | None = None
-    reflectance: Vec3 | None = None
-    index: float | None = None
-    glass: str | None = None
-    cauchy: tuple[float, float] | None = None
-
-    @property
-    def dispersion(self) -> bool:
-        """True when the refractive index depends on the wavelength (Cauchy B != 0)."""
-        return self.kind == "dielectric" and self.cauchy is not None and self.cauchy[1] != 0.0
-
-    def index_at(self, wavelength_nm):
-        """Refractive index at ``wavelength_nm`` (nm, scalar or array): A + B / λ², λ in µm."""
-        if self.kind != "dielectric":
-            raise ValueError(f"material {self.name!r} is {self.kind}, not a dielectric")
-        lam = np.asarray(wavelength_nm, np.float64)
-        if self.cauchy is None:
-            return np.full_like(lam, self.index) if lam.ndim else float(self.index)
-        a, b = self.cauchy
-        n = a + b / (lam / 1000.0) ** 2
-        return n if lam.ndim else float(n)
-
-
-@dataclasses.dataclass(frozen=True)
-class Lamp:
-    """A point lamp. ``position`` None means "auto" until :func:`assemble` resolves it."""
-
-    position: Vec3 | None = None
-    intensity: float = 1.0
-    spectrum: str = "D65"
-
-
-@dataclasses.dataclass(frozen=True)
-class Object:
-    """A mesh placed in the scene: scaled, then rotated, then translated.
-
-    Attributes:
-        mesh: a shipped mesh's name (``jrt.data.MESHES``, found by :func:`jrt.mesh_path`)
-            or an absolute path to a mesh file (``.gz`` too).
-        material: a material name.
-        scale: uniform scale, > 0.
-        rotate: degrees about the fixed x, y and z axes, applied in that order.
-        translate: scene units.
-        crease_angle: degrees in [0, 180]; edges whose faces meet at a larger angle shade
-            sharp, the others smooth (:func:`jrt.normals.corner_normals`).
-    """
-
-    mesh: str
-    material: str
-    scale: float = 1.0
-    rotate: Vec3 = (0.0, 0.0, 0.0)
-    translate: Vec3 = (0.0, 0.0, 0.0)
-    crease_angle: float = DEFAULT_CREASE_ANGLE
-
-    def rotation(self) -> np.ndarray:
-        """float64 [3, 3]: R = Rz @ Ry @ Rx (x first, fixed axes, right-handed)."""
-        cx, cy, cz = np.cos(np.radians(self.rotate))
-        sx, sy, sz = np.sin(np.radians(self.rotate))
-        rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-        ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-        rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-        return rz @ ry @ rx
-
-    def transform(self, points) -> np.ndarray:
-        """float64 [N, 3]: ``R @ (scale * p) + translate`` for each point p [N, 3]."""
-        p = np.asarray(points, np.float64)
-        return (self.scale * p) @ self.rotation().T + np.asarray(self.translate)
-
-
-@dataclasses.dataclass(frozen=True)
-class Floor:
-    """Two triangles (normal +y) under the objects' bounds.
-
-    The square is centred under the bounds' centre, with half-width ``extent`` times the
-    objects' larger horizontal half-size, ``gap`` times the objects' diagonal below their
-    lowest point.
-    """
-
-    material: str
-    extent: float = 3.0
-    gap: float = 1e-3
-
-
-@dataclasses.dataclass(frozen=True)
-class CameraSpec:
-    """The camera as written: explicit (``eye``, ``target``) or automatic (both None)."""
-
-    eye: Vec3 | None = None
-    target: Vec3 | None = None
-    up: Vec3 = (0.0, 1.0, 0.0)
-    vfov: float = 30.0
-    azimuth: float = 50.0
-    elevation: float = 20.0
-    margin: float = FRAME_MARGIN
-    width: int = 640
-    height: int = 480
-
-    @property
-    def auto(self) -> bool:
-        return self.eye is None
-
-    def resolve(self, vertices) -> Camera:
-        """The :class:`jrt.Camera`; automatic framing fits ``vertices`` [V, 3]."""
-        if self.auto:
-            return frame_mesh(vertices, width=self.width, height=self.height, vfov=self.vfov,
-                              azimuth=self.azimuth, elevation=self.elevation,
-                              margin=self.margin, up=self.up)
-        return Camera(eye=self.eye, target=self.target, up=self.up, vfov=self.vfov,
-                      width=self.width, height=self.height)
-
-
-@dataclasses.dataclass(frozen=True)
-class Settings:
-    """Render settings (see the module doc for ranges)."""
-
-    max_depth: int = 5
-    samples: int = 16
-    threshold: float = 1e-3
-    kernel: str = DEFAULT_KERNEL
-    accel: str = "bvh"
-    background: str = "black"
-    ambient: float = 0.1
-    fresnel: str = "exact"
-
-
-@dataclasses.dataclass(frozen=True)
-class Features:
-    """What the scene needs compiled: hashable, for ``jax.jit(static_argnames=...)``.
-
-    ``max_depth`` is 1 (camera rays only) when no mirror or dielectric is used, whatever
-    the settings say; ``shadows`` is true when a lamp lights a diffuse surface.
-    """
-
-    diffuse: bool
-    mirror: bool
-    dielectric: bool
-    dispersion: bool
-    lamps: int
-    shadows: bool
-    max_depth: int
-    counters: bool = False
-
-
-@dataclasses.dataclass(frozen=True)
-class Scene:
-    """A validated scene. ``source`` (the file, or ``built-in scene NAME``) is not compared."""
-
-    name: str
-    materials: tuple[Material, ...]
-    lamps: tuple[Lamp, ...]
-    objects: tuple[Object, ...]
-    floor: Floor | None
-    camera: CameraSpec
-    settings: Settings
-    source: str = dataclasses.field(default="<scene>", compare=False)
-
-    def material(self, name: str) -> Material:
-        return self.materials[self.material_index(name)]
-
-    def material_index(self, name: str) -> int:
-        """Index of ``name`` in :attr:`materials` (the order of definition)."""
-        for i, m in enumerate(self.materials):
-            if m.name == name:
-                return i
-        raise KeyError(name)
-
-    def used_materials(self) -> tuple[Material, ...]:
-        """The materials some object or the floor refers to, in index order."""
-        names = {o.material for o in self.objects}
-        if self.floor is not None:
-            names.add(self.floor.material)
-        return tuple(m for m in self.materials if m.name in names)
-
-    def features(self, counters: bool = False) -> Features:
-        used = self.used_materials()
-        kinds = {m.kind for m in used}
-        specular = bool(kinds & {"mirror", "dielectric"})
-        return Features(
-            diffuse="diffuse" in kinds,
-            mirror="mirror" in kinds,
-            dielectric="dielectric" in kinds,
-            dispersion=any(m.dispersion for m in used),
-            lamps=len(self.lamps),
-            shadows=bool(self.lamps) and "diffuse" in kinds,
-            max_depth=self.settings.max_depth if specular else 1,
-            counters=bool(counters),
-        )
-
-    def to_toml(self) -> str:
-        """The scene as TOML that :func:`parse_scene` reads back to an equal scene."""
-        return _dump(self)
-
-
-# --------------------------------------------------------------------------- built-ins
-
-_CAMERA_AND_LAMP = """\
-[camera]
-eye = "auto"              # framed by jrt.camera.frame_mesh: a 3/4 view from above
-target = "auto"
-vfov = 30.0
-azimuth = 50.0
-elevation = 20.0
-width = 640
-height = 480
-
-[[lamps]]
-position = "auto"         # above the camera's left shoulder (jrt.render.default_lamp)
-intensity = 1.0
-spectrum = "D65"
-
-[floor]
-material = "floor"
-extent = 3.0              # half-width: 3 x the camel's larger horizontal half-size
-gap = 1e-3                # below the lowest hoof, times the camel's diagonal
-
-[materials.floor]
-kind = "diffuse"
-albedo = [0.55, 0.55, 0.55]
-"""
-
-#: The built-in scenes, as TOML: copy one to start a scene of your own.
-BUILTIN_SCENES: dict[str, str] = {
-    "camel": f"""\
-# The diffuse camel: Lambert shading, one point lamp with shadows, a grey floor.
-name = "camel"
-
-[settings]
-max_depth = 1             # nothing reflects or refracts: camera rays and shadow rays
-kernel = "watertight"
-accel = "bvh"
-background = "sky"
-ambient = 0.15
-
-[[objects]]
-mesh = "camel"
-material = "sand"
-
-[materials.sand]
-kind = "diffuse"
-albedo = [0.86, 0.68, 0.46]
-
-{_CAMERA_AND_LAMP}""",
-    "glass-camel": f"""\
-# A BK7 glass camel: Fresnel reflection and refraction, Cauchy dispersion
-# n(lambda) = A + B / lambda^2 sampled at 16 wavelengths.
-name = "glass-camel"
-
-[settings]
-max_depth = 8
-samples = 16
-threshold = 1e-3
-kernel = "watertight"
-accel = "bvh"
-background = "sky"
-ambient = 0.15
-
-[[objects]]
-mesh = "camel"
-material = "glass"
-
-[materials.glass]
-kind = "dielectric"
-glass = "BK7"             # Cauchy A, B from jrt.optics.GLASSES; or index = 1.5 (no dispersion)
-
-{_CAMERA_AND_LAMP}""",
-    "mirror-camel": f"""\
-# A mirror camel over a diffuse floor.
-name = "mirror-camel"
-
-[settings]
-max_depth = 5
-kernel = "watertight"
-accel = "bvh"
-background = "sky"
-ambient = 0.15
-
-[[objects]]
-mesh = "camel"
-material = "mirror"
-
-[materials.mirror]
-kind = "mirror"
-reflectance = [0.9, 0.9, 0.9]
-
-{_CAMERA_AND_LAMP}""",
-}
-
-
-def builtin_toml(name: str) -> str:
-    """The TOML text of the built-in scene ``name``."""
-    if name not in BUILTIN_SCENES:
-        raise SceneError(
-            f"unknown built-in scene {name!r}; built-in scenes: {', '.join(BUILTIN_SCENES)}"
-        )
-    return BUILTIN_SCENES[name]
+from jrt.mesh import SUFFIXES, mesh_suffix
+from jrt.normals import DEFAULT_CREASE_ANGLE
+from jrt.scene.builtin_scenes import BUILTIN_SCENES
+from jrt.scene.model import (
+    BACKGROUNDS,
+    CAUCHY_B_RANGE,
+    FRESNEL_MODELS,
+    ILLUMINANTS,
+    INDEX_RANGE,
+    KINDS,
+    MAX_DEPTH,
+    MAX_PIXELS,
+    MAX_SAMPLES,
+    CameraSpec,
+    Floor,
+    Lamp,
+    Material,
+    Object,
+    Scene,
+    SceneError,
+    Settings,
+)
+
+# --------------------------------------------------------------------------- reading
 
 
 def load_scene(spec: str | Path) -> Scene:
-    """A built-in scene's name (:data:`BUILTIN_SCENES`) or the path of a ``.toml`` file."""
+    """A built-in scene's name (:data:`jrt.scene.BUILTIN_SCENES`) or the path of a ``.toml``
+    file."""
     if isinstance(spec, str) and spec in BUILTIN_SCENES:
         return parse_scene(BUILTIN_SCENES[spec], source=f"built-in scene {spec}",
                            default_name=spec)
@@ -822,7 +508,10 @@ def _lines(fields: Mapping[str, Any]) -> list[str]:
     return [f"{k} = {_toml(v)}" for k, v in fields.items() if v is not None]
 
 
-def _dump(scene: Scene) -> str:
+def dump_scene(scene: Scene) -> str:
+    """The scene as TOML text (``Scene.to_toml``): each field that applies, defaults too,
+    ``"auto"`` for an automatic camera or lamp; :func:`parse_scene` reads it back to an
+    equal scene."""
     cam = scene.camera
     camera = dataclasses.asdict(cam)
     if cam.auto:
@@ -851,151 +540,4 @@ def _dump(scene: Scene) -> str:
     return "\n".join(out) + "\n"
 
 
-# --------------------------------------------------------------------------- assembly
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class SceneGeometry:
-    """A scene as arrays: every object transformed, the floor appended (last two faces).
-
-    Attributes:
-        mesh: the whole scene as one validated :class:`jrt.Mesh` (float32 vertices [V, 3],
-            int32 faces [F, 3]); build the acceleration structure over it.
-        material_of_face: int32 [F], index into ``materials`` of each face.
-        normals: float32 [F, 3, 3], the shading normal of each face's corners
-            (:func:`jrt.normals.corner_normals` of each object with its ``crease_angle``;
-            the floor flat).
-        materials: the scene's materials, in index order.
-        lamps: the lamps, each with its position resolved.
-        camera: the resolved :class:`jrt.Camera`.
-        object_faces: ``(start, stop)`` face range of each object, then of the floor.
-        features: ``scene.features()``.
-    """
-
-    mesh: Mesh
-    material_of_face: np.ndarray
-    normals: np.ndarray
-    materials: tuple[Material, ...]
-    lamps: tuple[Lamp, ...]
-    camera: Camera
-    object_faces: tuple[tuple[int, int], ...]
-    features: Features
-
-    @property
-    def vertices(self) -> np.ndarray:
-        return self.mesh.vertices
-
-    @property
-    def faces(self) -> np.ndarray:
-        return self.mesh.faces
-
-    @property
-    def lamp_positions(self) -> np.ndarray:
-        """float32 [L, 3]."""
-        return np.asarray([lamp.position for lamp in self.lamps], np.float32).reshape(-1, 3)
-
-    @property
-    def lamp_intensities(self) -> np.ndarray:
-        """float32 [L]."""
-        return np.asarray([lamp.intensity for lamp in self.lamps], np.float32)
-
-
-def _load_object_mesh(obj: Object) -> Mesh:
-    return load_mesh(camel_path(obj.mesh) if obj.mesh in MESHES else obj.mesh)
-
-
-def floor_quad(lo, hi, extent: float, gap: float) -> tuple[np.ndarray, np.ndarray]:
-    """float64 [4, 3] corners and int [2, 3] faces (normal +y) of the floor under the box
-    ``lo``..``hi`` (see :class:`Floor`)."""
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    centre = (lo + hi) / 2
-    half = extent * max(float(hi[0] - lo[0]), float(hi[2] - lo[2]), 1e-12) / 2
-    y = lo[1] - gap * float(np.linalg.norm(hi - lo))
-    x0, x1, z0, z1 = centre[0] - half, centre[0] + half, centre[2] - half, centre[2] + half
-    corners = np.array([[x0, y, z0], [x1, y, z0], [x1, y, z1], [x0, y, z1]])
-    # (a, d, c) and (a, c, b): (d - a) x (c - a) = (0, dz dx, 0), pointing up.
-    return corners, np.array([[0, 3, 2], [0, 2, 1]])
-
-
-def assemble(scene: Scene) -> SceneGeometry:
-    """Load, transform and concatenate the scene's meshes; resolve the camera and lamps.
-
-    Raises :class:`SceneError` for a mesh that fails :func:`jrt.load_mesh`'s validation,
-    FileNotFoundError when the camel data cannot be found.
-    """
-    from jrt.render import default_lamp
-
-    vertices, faces, material, ranges, normals = [], [], [], [], []
-    loaded: dict[str, Mesh] = {}
-    count = 0  # vertices so far
-    for i, obj in enumerate(scene.objects):
-        try:
-            if obj.mesh not in loaded:
-                loaded[obj.mesh] = _load_object_mesh(obj)
-        except MeshError as exc:
-            raise SceneError(f"{scene.source}: objects[{i}].mesh: {exc}") from exc
-        mesh = loaded[obj.mesh]
-        start = sum(len(f) for f in faces)
-        vertices.append(obj.transform(mesh.vertices))
-        normals.append(corner_normals(vertices[-1], mesh.faces, obj.crease_angle))
-        faces.append(mesh.faces.astype(np.int64) + count)
-        material.append(np.full(len(mesh.faces), scene.material_index(obj.material)))
-        ranges.append((start, start + len(mesh.faces)))
-        count += len(mesh.vertices)
-    try:
-        objects = mesh_from_arrays(np.concatenate(vertices), np.concatenate(faces),
-                                   name=f"{scene.name} (objects)")
-    except MeshError as exc:  # e.g. a scale that underflows float32
-        raise SceneError(f"{scene.source}: objects: {exc}") from exc
-    camera = scene.camera.resolve(objects.vertices)
-    lamps = tuple(
-        lamp if lamp.position is not None else dataclasses.replace(
-            lamp, position=tuple(float(x) for x in default_lamp(objects, camera)))
-        for lamp in scene.lamps
-    )
-    if scene.floor is not None:
-        lo, hi = objects.bounds
-        corners, quad = floor_quad(lo, hi, scene.floor.extent, scene.floor.gap)
-        start = len(objects.faces)
-        vertices.append(corners)
-        faces.append(quad + count)
-        normals.append(corner_normals(corners, quad, 0.0))
-        material.append(np.full(2, scene.material_index(scene.floor.material)))
-        ranges.append((start, start + 2))
-    whole = mesh_from_arrays(np.concatenate(vertices), np.concatenate(faces),
-                             name=scene.name) if scene.floor is not None else objects
-    return SceneGeometry(
-        mesh=whole,
-        material_of_face=np.concatenate(material).astype(np.int32),
-        normals=np.concatenate(normals).astype(np.float32),
-        materials=scene.materials,
-        lamps=lamps,
-        camera=camera,
-        object_faces=tuple(ranges),
-        features=scene.features(),
-    )
-
-
-__all__ = [
-    "BACKGROUNDS",
-    "BUILTIN_SCENES",
-    "ILLUMINANTS",
-    "KINDS",
-    "CameraSpec",
-    "Features",
-    "Floor",
-    "Lamp",
-    "Material",
-    "Object",
-    "Scene",
-    "SceneError",
-    "SceneGeometry",
-    "Settings",
-    "assemble",
-    "builtin_toml",
-    "floor_quad",
-    "glass_catalogue",
-    "illuminant_names",
-    "load_scene",
-    "parse_scene",
-]
+__all__ = ["dump_scene", "glass_catalogue", "illuminant_names", "load_scene", "parse_scene"]
