@@ -38,13 +38,14 @@ def _child(mesh_name: str, structure_name: str, counts: list[int]) -> dict:
     mesh = jrt.load_mesh(jrt.mesh_path(mesh_name))
     structure = accel.build(structure_name, mesh)
     origins, directions = incoherent_set(mesh.vertices, max(counts), seed=0)
-    program = jrt.brute.closest_hit if structure_name == "brute" else engine._traverse
+    programs = (jrt.brute.compiled_programs if structure_name == "brute"
+                else engine.compiled_programs)
     calls = []
     for n in counts:
         start = time.perf_counter()
         hits = jax.block_until_ready(jrt.closest_hit(structure, origins[:n], directions[:n]))
         seconds = time.perf_counter() - start
-        calls.append({"rays": n, "seconds": seconds, "programs": program._cache_size(),
+        calls.append({"rays": n, "seconds": seconds, "programs": programs(),
                       "hits": int(np.sum(np.asarray(hits.triangle) >= 0))})
     return {"mesh": mesh.summary(), "structure": structure_name, "calls": calls}
 

@@ -39,6 +39,12 @@ One run measures, in this order, and writes one record per measurement under
 Ratios to Embree measured in the same run are the figures to quote: absolute times drift
 on a shared machine. ``--quick`` is CI's smoke test (the 19k camel, 64² rays a set, 2
 repeats, scaling over 19k and 69k).
+
+The other engines (Embree, trimesh, Open3D, Mitsuba) and their records are in
+``benchmarks.peers``. This file is longer than ~800 lines because it holds the run and the
+builders of every record kind the run writes (build, trace, heatmap, correctness, scaling,
+cost model), which ``benchmarks.schema`` checks together and ``tests/test_report.py``
+calls one by one.
 """
 
 from __future__ import annotations
@@ -66,7 +72,16 @@ import jrt.data
 import jrt.raysets
 from benchmarks.build_scaling import build_times, fit_exponent, ns_per_n_log2_n, subdivide
 from benchmarks.common import jsonable, rates, summary, time_calls, write_record
+from benchmarks.peers import (
+    EmbreePeer,
+    mitsuba_rows,
+    open3d_rows,
+    peer_row,
+    ray_subset,
+    trimesh_rows,
+)
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
+from jrt.interaction import face_forward, surface_interaction
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -349,13 +364,14 @@ def ray_sets(mesh, camera, embree, threads: int, seed: int, n: int) -> tuple[dic
     lamp = jrt.render.default_lamp(mesh, camera)
     info["lamp"] = lamp.tolist()
     if hit.size:
-        corners = mesh.vertices.astype(np.float64)[mesh.faces[hits["triangle"][hit]]]
-        u = hits["u"][hit, None].astype(np.float64)
-        v = hits["v"][hit, None].astype(np.float64)
-        point = (1 - u - v) * corners[:, 0] + u * corners[:, 1] + v * corners[:, 2]
-        normal = _unit(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+        # The hit points and geometric normals in float64 (NumPy arrays in, NumPy out), the
+        # normal turned against the camera ray.
         incident = d[hit].astype(np.float64)
-        normal = np.where((np.sum(normal * incident, axis=1) > 0)[:, None], -normal, normal)
+        surface = surface_interaction(
+            mesh.vertices.astype(np.float64), mesh.faces, hits["triangle"][hit],
+            hits["u"][hit].astype(np.float64), hits["v"][hit].astype(np.float64), incident)
+        point = surface.point
+        normal = face_forward(surface.geometric_normal, -incident)
         eps = OFFSET * mesh.diagonal
         to_lamp = lamp.astype(np.float64) - point
         dist = np.linalg.norm(to_lamp, axis=1)
@@ -391,144 +407,6 @@ def ray_sets(mesh, camera, embree, threads: int, seed: int, n: int) -> tuple[dic
     io, idir = jrt.raysets.incoherent_set(mesh.vertices, n, seed=seed)
     sets["incoherent"] = RaySet("incoherent", "closest", io, idir, None, n)
     return {k: sets[k] for k in SETS if k in sets}, info
-
-
-# --- Peers ----------------------------------------------------------------------------------
-
-
-def _peer_row(peer, ray_set, seconds, embree_rate, rays=None, threads=None, note=""):
-    rays = ray_set.rays if rays is None else rays
-    rate = rates(rays, seconds)
-    return {"kind": "peer", "peer": peer, "set": ray_set.name, "query": ray_set.query,
-            "status": "ok", "note": note, "rays": rays, "threads": threads,
-            "repeats": seconds, "seconds": summary(seconds), "mrays_per_s": rate,
-            "ratio_to_embree": rate["median"] / embree_rate if embree_rate else None}
-
-
-def _absent_peer(peer, status, note) -> dict:
-    return {"kind": "peer", "peer": peer, "set": None, "query": None, "status": status,
-            "note": note, "rays": None, "threads": None, "repeats": [], "seconds": None,
-            "mrays_per_s": None, "ratio_to_embree": None}
-
-
-def _subset(ray_set: RaySet, count: int, seed: int, pad: bool = False) -> np.ndarray:
-    """Sorted indices of ``count`` distinct rays of a set (drawn from its distinct rows).
-
-    With ``pad``, a set with fewer distinct rays gives all of them, repeated up to
-    ``count`` (so that every set's subset has one shape, and one compiled query).
-    """
-    rng = np.random.default_rng(seed)
-    pool = ray_set.distinct
-    idx = np.sort(rng.choice(pool, min(count, pool), replace=False))
-    return np.resize(idx, count) if pad and len(idx) < count else idx
-
-
-def trimesh_rows(mesh, sets, embree_rates, count: int, seed: int, log) -> list[dict]:
-    """trimesh's rtree intersector (one thread, one call) on ``count`` rays of each set."""
-    if count == 0:
-        return [_absent_peer("trimesh", "skipped", "--trimesh-rays 0")]
-    if importlib.util.find_spec("rtree") is None:  # trimesh's intersector needs it
-        log("trimesh: not installed (its ray intersector needs rtree: pip install rtree)")
-        return [_absent_peer("trimesh", "not installed",
-                             "pip install rtree (trimesh's ray intersector needs it)")]
-    try:
-        import trimesh
-        from trimesh.ray.ray_triangle import RayMeshIntersector
-
-        tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-        intersector = RayMeshIntersector(tm)
-        tm.triangles_tree  # noqa: B018  (builds the rtree now, outside the timing)
-    except Exception as exc:  # noqa: BLE001  (any failure: recorded, the suite goes on)
-        log(f"trimesh: skipped ({type(exc).__name__}: {exc})")
-        return [_absent_peer("trimesh", "failed", f"{type(exc).__name__}: {exc}")]
-    rows = []
-    for ray_set in sets.values():
-        idx = _subset(ray_set, count, seed)
-        o = ray_set.origins[idx].astype(np.float64)
-        d = ray_set.directions[idx].astype(np.float64)
-        if ray_set.query == "occluded":
-            fn = lambda o=o, d=d: intersector.intersects_any(o, d)  # noqa: E731
-            note = ("intersects_any on infinite rays (the lamp lies outside the mesh's box, "
-                    "so nothing lies beyond it); one call, one thread")
-        else:
-            fn = lambda o=o, d=d: intersector.intersects_first(o, d)  # noqa: E731
-            note = "intersects_first; one call, one thread"
-        rows.append(_peer_row("trimesh", ray_set, time_calls(fn, 1),
-                              embree_rates[ray_set.name], rays=len(idx), threads=1, note=note))
-    return rows
-
-
-def open3d_rows(mesh, sets, embree_rates, repeats: int) -> list[dict]:
-    """Open3D's ``RaycastingScene`` (all cores), when installed."""
-    if importlib.util.find_spec("open3d") is None:
-        return [_absent_peer("open3d", "not installed", "pip install open3d (needs the "
-                                                        "system library libusb-1.0)")]
-    try:
-        import open3d as o3d
-
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-                            o3d.core.Tensor(mesh.faces.astype(np.uint32)))
-        rows = []
-        for ray_set in sets.values():
-            if ray_set.query == "occluded":
-                # tfar is one number: scale each direction by its tmax and stop at t = 1.
-                d = ray_set.directions * ray_set.tmax[:, None]
-                rays = o3d.core.Tensor(np.hstack([ray_set.origins, d]).astype(np.float32))
-                fn = lambda rays=rays: scene.test_occlusions(rays, tfar=1.0).numpy()  # noqa: E731
-            else:
-                rays = o3d.core.Tensor(
-                    np.hstack([ray_set.origins, ray_set.directions]).astype(np.float32))
-                fn = lambda rays=rays: scene.cast_rays(rays)["t_hit"].numpy()  # noqa: E731
-            fn()
-            rows.append(_peer_row("open3d", ray_set, time_calls(fn, repeats),
-                                  embree_rates[ray_set.name], threads=os.cpu_count(),
-                                  note="RaycastingScene, all cores"))
-        return rows
-    except Exception as exc:  # noqa: BLE001
-        return [_absent_peer("open3d", "failed", f"{type(exc).__name__}: {exc}")]
-
-
-def mitsuba_rows(mesh, sets, embree_rates, repeats: int) -> list[dict]:
-    """Mitsuba 3's ``llvm_ad_rgb`` variant (ray_intersect_preliminary / ray_test)."""
-    if importlib.util.find_spec("mitsuba") is None:
-        return [_absent_peer("mitsuba", "not installed", "pip install mitsuba")]
-    try:
-        import drjit as dr
-        import mitsuba as mi
-
-        mi.set_variant("llvm_ad_rgb")
-        m = mi.Mesh("camel", vertex_count=len(mesh.vertices), face_count=len(mesh.faces),
-                    has_vertex_normals=False, has_vertex_texcoords=False)
-        params = mi.traverse(m)
-        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
-        params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
-        params.update()
-        scene = mi.load_dict({"type": "scene", "camel": m})
-        rows = []
-        for ray_set in sets.values():
-            o, d = ray_set.origins, ray_set.directions
-            ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, k]) for k in range(3))),
-                           mi.Vector3f(*(mi.Float(d[:, k]) for k in range(3))))
-            if ray_set.query == "occluded":
-                ray.maxt = mi.Float(ray_set.tmax)
-
-                def fn(ray=ray):
-                    out = scene.ray_test(ray)
-                    dr.eval(out)
-                    dr.sync_thread()
-            else:
-                def fn(ray=ray):
-                    out = scene.ray_intersect_preliminary(ray)
-                    dr.eval(out.t)
-                    dr.sync_thread()
-            fn()
-            rows.append(_peer_row("mitsuba", ray_set, time_calls(fn, repeats),
-                                  embree_rates[ray_set.name], threads=os.cpu_count(),
-                                  note="llvm_ad_rgb variant"))
-        return rows
-    except Exception as exc:  # noqa: BLE001
-        return [_absent_peer("mitsuba", "failed", f"{type(exc).__name__}: {exc}")]
 
 
 # --- Measurements ---------------------------------------------------------------------------
@@ -680,13 +558,6 @@ def correctness_record(name, ray_set, idx, ours, reference, embree_result) -> di
                     "own kernel, so a few disagreements on edges are expected"}
 
 
-def _embree_call(embree, ray_set: RaySet, threads: int):
-    if ray_set.query == "occluded":
-        return lambda: embree.occluded(ray_set.origins, ray_set.directions, ray_set.tmax,
-                                       threads=threads)
-    return lambda: embree.closest_hit(ray_set.origins, ray_set.directions, threads=threads)
-
-
 def cost_model(name: str, traces: list[dict]) -> dict:
     """Fit the time per ray to the per-ray counters over the sets (Havran & Purgathofer).
 
@@ -786,7 +657,6 @@ def run(args) -> dict:
     import jax
 
     import jrt.render  # noqa: F401  (default_lamp)
-    from benchmarks.peers import EmbreePeer
 
     p = _resolve(args)
     quiet = not args.progress
@@ -836,7 +706,7 @@ def run(args) -> dict:
     # set of its kind (the others share the compiled code).
     brute = accel.build("brute", mesh.vertices, mesh.faces)
     tracer = Tracer(args.kernel, p["repeats"])
-    subsets = {name: _subset(s, p["brute_rays"], args.seed + 1, pad=True)
+    subsets = {name: ray_subset(s, p["brute_rays"], args.seed + 1, pad=True)
                for name, s in sets.items()}
     first_set = {}
     for s in sets.values():
@@ -862,11 +732,11 @@ def run(args) -> dict:
     embree_rates = {}
     bar = tqdm(total=len(sets) * len(names), desc="trace", disable=quiet, leave=False)
     for ray_set in sets.values():
-        emb = _embree_call(embree, ray_set, threads)
+        emb = embree.query_call(ray_set, threads)
         embree_result = emb()  # warm-up, and the hits to compare with
         seconds = time_calls(emb, p["repeats"])
-        row = _peer_row("embree", ray_set, seconds, None, threads=threads,
-                        note="embreex robust mode, one Python thread per core")
+        row = peer_row("embree", ray_set, seconds, None, threads=threads,
+                       note="embreex robust mode, one Python thread per core")
         embree_rates[ray_set.name] = row["mrays_per_s"]["median"]
         row["ratio_to_embree"] = 1.0
         records.append(row)

@@ -355,8 +355,8 @@ def test_cli_bad_batches_are_errors(tmp_path, scene_file, capsys, args, message)
 
 
 def test_cli_turntable_needs_a_scene_and_a_positive_count(tmp_path, capsys):
-    assert main(["render", "--turntable", "4", "-o", str(tmp_path / "t")]) == 2
-    assert "--turntable applies to --scene renders" in capsys.readouterr().err
+    assert main(["render", "bunny", "--turntable", "4", "-o", str(tmp_path / "t")]) == 2
+    assert "--turntable applies to scene renders" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["render", "--scene", "glass-camel", "--turntable", "0"])
     assert "N must be an integer >= 1 (the number of frames), got '0'" in (

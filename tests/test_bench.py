@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from benchmarks import suite
+from benchmarks import peers, suite
 from benchmarks.schema import SCHEMA, validate
 
 STRUCTURES = ["bvh", "kdtree"]
@@ -245,10 +245,10 @@ def test_trimesh_peer_without_rtree_says_not_installed(monkeypatch):
     from benchmarks.schema import STATUSES
 
     find_spec = importlib.util.find_spec
-    monkeypatch.setattr(suite.importlib.util, "find_spec",
+    monkeypatch.setattr(peers.importlib.util, "find_spec",
                         lambda name, *a: None if name == "rtree" else find_spec(name, *a))
     said = []
-    (row,) = suite.trimesh_rows(None, {}, {}, count=8, seed=0, log=said.append)
+    (row,) = peers.trimesh_rows(None, {}, {}, count=8, seed=0, log=said.append)
     assert row["peer"] == "trimesh" and row["status"] == "not installed"
     assert row["status"] in STATUSES and "pip install rtree" in row["note"]
     assert said and "pip install rtree" in said[0]

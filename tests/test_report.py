@@ -55,6 +55,7 @@ def bench_results(tmp_path_factory):
     suite = pytest.importorskip("benchmarks.suite")
     from benchmarks.build_scaling import fit_exponent
     from benchmarks.common import jsonable, summary, time_calls
+    from benchmarks.peers import absent_peer, peer_row
     from benchmarks.schema import validate
 
     v, f = _mesh(2)
@@ -67,8 +68,8 @@ def bench_results(tmp_path_factory):
     embree = {}
     for set_name, query in SETS.items():
         ray_set = types.SimpleNamespace(name=set_name, query=query, rays=RAYS)
-        row = suite._peer_row("embree", ray_set, [BASE[set_name] / 20, BASE[set_name] / 21],
-                              None, threads=2, note="embreex robust mode")
+        row = peer_row("embree", ray_set, [BASE[set_name] / 20, BASE[set_name] / 21],
+                       None, threads=2, note="embreex robust mode")
         row["ratio_to_embree"] = 1.0
         embree[set_name] = row["mrays_per_s"]["median"]
         records.append(row)
@@ -93,7 +94,7 @@ def bench_results(tmp_path_factory):
                             "reference_hits": RAYS // 2, "mismatches": 0,
                             "mismatches_by_field": {"t": 0, "triangle": 0},
                             "embree_rays": RAYS, "embree_disagreements": 1})
-    records.append(suite._absent_peer("open3d", "not installed", "pip install open3d"))
+    records.append(absent_peer("open3d", "not installed", "pip install open3d"))
     records.append({"kind": "turntable", "scene": "glass-camel", "mesh": "camel-19k",
                     "frames": 8, "width": 48, "height": 36, "samples": 4, "max_depth": 3,
                     "batched_images_per_s": 11.5, "loop_images_per_s": 2.7,
@@ -707,3 +708,29 @@ def test_places_are_the_extremes_of_every_choice_in_the_intervals():
             for rank, n in enumerate(sorted(chosen, key=chosen.get, reverse=True), 1):
                 seen[n].add(rank)
         assert report.places(values) == {n: (min(r), max(r)) for n, r in seen.items()}
+
+
+def test_structure_order_follows_the_registry():
+    """The report lists structures in the registry's order with brute force last; a kind
+    registered later joins before brute force, and a run over every engine structure needs
+    no ``--structures`` in its rebuilt command."""
+    import dataclasses
+
+    from reports.inputs import structure_order
+
+    builtin = ("bvh", "kdtree", "octree", "bsp", "grid")
+    assert structure_order() == (*builtin, "brute")
+    accel.register(dataclasses.replace(accel.kind("bvh"), name="bvh_copy"))
+    try:
+        assert structure_order() == (*builtin, "bvh_copy", "brute")
+        records = [{"kind": "build", "structure": n} for n in ("brute", "grid", "bvh_copy",
+                                                               "bvh")]
+        assert _bench({"records": records}).structures == ["bvh", "grid", "bvh_copy", "brute"]
+        every = {"parameters": {"mesh": "tiny", "structures": [*builtin, "bvh_copy"]}}
+        assert "--structures" not in report.bench_command(every, Path("b.json"))
+        some = {"parameters": {"mesh": "tiny", "structures": list(builtin)}}
+        assert ("--structures bvh,kdtree,octree,bsp,grid -o b.json"
+                in report.bench_command(some, Path("b.json")))
+    finally:
+        accel.unregister("bvh_copy")
+    assert structure_order() == (*builtin, "brute")

@@ -1,4 +1,4 @@
-"""The numerical-stability suite (``benchmarks/stability.py``) at CI sizes.
+"""The numerical-stability suite (the package ``benchmarks/stability/``) at CI sizes.
 
 Every case that should pass runs here, small: the suite's own case functions with small
 parameters, and assertions on their records. What is known not to hold yet is an xfail
@@ -10,6 +10,12 @@ few hundred rays per case, two or three structures per test except case 1 (all s
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -18,6 +24,7 @@ import jrt
 from benchmarks import stability
 
 KERNELS = tuple(jrt.KERNELS)
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _by(records, **match):
@@ -47,7 +54,7 @@ def test_oracle_agrees_with_jrt_brute_force_on_clean_rays():
 # --- Case 1 -----------------------------------------------------------------------------------
 
 def test_case1_watertight_has_no_cracks_under_any_structure():
-    pairs = [("watertight", s) for s in accel.NAMES] + [
+    pairs = [("watertight", s) for s in accel.names()] + [
         (k, "brute") for k in KERNELS if k != "watertight"]
     out = stability.case1(mesh="camel-19k", per_family=120, pairs=pairs)
     records = out["records"]
@@ -233,7 +240,7 @@ def test_case9_stack_overflow_is_reported():
 @pytest.mark.xfail(reason="the tie window (2^-20 t, lowest face wins) is not transitive: on "
                           "a stack of nearly coplanar layers the winner depends on the "
                           "visiting order, and the structures disagree with brute force "
-                          "(benchmarks/stability.py, case 9)", strict=False)
+                          "(benchmarks/stability/deep_trees.py, case 9)", strict=False)
 def test_case9_stacked_layers_agree_with_brute_force():
     out = stability.stacked_layers([("watertight", "brute"), ("watertight", "bvh")], n=1000)
     assert all(r["same_as_brute"] for r in out), out
@@ -246,11 +253,43 @@ def test_every_size_names_only_arguments_of_its_case():
 
     for case, fn in stability.CASE_FUNCTIONS.items():
         signature = inspect.signature(fn)
-        for params in (stability._quick_params(case, None),
-                       stability._standard_params(case, None)):
+        for params in (stability.quick_params(case, None),
+                       stability.standard_params(case, None)):
             signature.bind(**params)
             for name in ("per_family", "per_angle", "per_triangle", "incoherent_rays", "rays"):
                 if name in params:
                     assert params[name] <= signature.parameters[name].default, (case, name)
     with pytest.raises(ValueError, match="allowed quick, standard, full"):
         stability.run(cases=(8,), size="medium")
+
+
+def test_structure_lists_come_from_the_registry(capsys):
+    """A structure registered after import is in the default pairs, in the quick size's
+    pairs and in the command's help."""
+    accel.register(dataclasses.replace(accel.kind("bvh"), name="bvh_copy"))
+    try:
+        assert ("watertight", "bvh_copy") in stability.combos(("watertight",))
+        quick = stability.quick_params(1, None)["pairs"]
+        # Every kernel on brute force, then watertight on every structure the engine steps.
+        assert [s for k, s in quick if k == "watertight"] == ["brute", "bvh", "kdtree",
+                                                             "octree", "bsp", "grid",
+                                                             "bvh_copy"]
+        assert {s for k, s in quick if k != "watertight"} == {"brute"}
+        with pytest.raises(SystemExit) as exit_:
+            stability.main(["--help"], prog="jrt stability")
+        assert exit_.value.code == 0
+        usage = capsys.readouterr().out
+        assert usage.startswith("usage: jrt stability") and "bvh_copy" in usage
+    finally:
+        accel.unregister("bvh_copy")
+    assert "bvh_copy" not in {s for _, s in stability.combos()}
+
+
+def test_the_package_runs_as_a_module():
+    """``python -m benchmarks.stability`` parses its options under its own name."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.stability", "--cases", "10"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert "python -m benchmarks.stability: error: --cases: unknown [10]" in proc.stderr

@@ -1,4 +1,4 @@
-"""``jrt study``: the whole study of the camel in one command.
+"""The whole study of the camel in one command: bench, stability, work-precision, renders, report.
 
     jrt study [-o DIR | --publish] [--quick | --full] [--skip STEPS] [--structures NAMES]
 
@@ -38,14 +38,14 @@ from pathlib import Path
 
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 
-#: The command name in usage and errors when run as ``python -m benchmarks.study``
+#: The command name in usage and errors when run as ``python -m reports.study``
 #: (``jrt study`` passes its own).
-PROG = "python -m benchmarks.study"
+PROG = "python -m reports.study"
 #: Where a study goes unless ``-o`` says otherwise: relative to the working directory.
 DEFAULT_OUTPUT = Path("study")
 #: The published study, tracked in the repository: written by ``--publish`` only (or by
 #: ``-o`` naming it with ``--full``, or ``--force``).
-PUBLISHED = Path(__file__).resolve().parents[1] / "reports" / "camel"
+PUBLISHED = Path(__file__).resolve().parent / "camel"
 
 #: Render sizes (width, height) of the built-in scenes, full and --quick.
 RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
@@ -180,7 +180,7 @@ def _render_scenes(quick: bool) -> list[str]:
                                  height=height),
         settings=dataclasses.replace(glass.settings, samples=CLOSEUP["samples"]))
     render("glass-camel-closeup", shrink(closeup),
-           f"dispersion close-up of `glass-camel` (`benchmarks/study.py`: the scene's eye "
+           f"dispersion close-up of `glass-camel` (`reports/study.py`: the scene's eye "
            f"aimed {CLOSEUP['above_centre']:.0%} of the height above the centre, vertical "
            f"field of view {CLOSEUP['vfov']:g}°, {CLOSEUP['samples']} wavelengths)",
            structure=setup.structure)
@@ -215,7 +215,7 @@ def main(argv=None, prog: str = PROG) -> int:
     if args.structures is not None:  # brute force, the suite's reference, runs anyway
         sizes["bench"] = quick + ["--structures", ",".join(args.structures)]
     for name in ("bench", "stability", "work_precision"):
-        step(name, lambda name=name: _ok(_module(name).main(
+        step(name, lambda name=name: _ok(_step_main(name)(
             ["-o", str(jsons[name])] + sizes.get(name, quick))))
     images = step("renders", lambda: _render_scenes(args.quick)) or []
 
@@ -234,12 +234,16 @@ def main(argv=None, prog: str = PROG) -> int:
     return 0
 
 
-def _module(step: str):
-    """The module of a step, imported when the step runs."""
-    import importlib
-
-    return importlib.import_module(
-        {"bench": "benchmarks.suite"}.get(step, f"benchmarks.{step}"))
+def _step_main(step: str):
+    """The ``main`` of a step's suite, imported when the step runs (so that ``jrt study
+    --help`` and a study that skips a step do not load it)."""
+    if step == "bench":
+        from benchmarks.suite import main as step_main
+    elif step == "stability":
+        from benchmarks.stability import main as step_main
+    else:
+        from benchmarks.work_precision import main as step_main
+    return step_main
 
 
 def _ok(status) -> None:
