@@ -1,22 +1,32 @@
 """The ``jrt`` command line as one program: every command's help is plain text and names
-``jrt COMMAND``, the delegated commands' errors do too, and ``jrt study`` writes into
-``./study`` unless the published study is asked for explicitly (nothing runs here: the
-output folder is resolved, or refused, before any step)."""
+``jrt COMMAND``, the registered commands' errors do too (the commands that the packages
+above the library register as entry points, and what ``jrt`` says when one is missing),
+``jrt render --turntable`` without a scene turns the default one, and ``jrt study`` writes
+into ``./study`` unless the published study is asked for explicitly (nothing runs there:
+the output folder is resolved, or refused, before any step)."""
 
 from __future__ import annotations
 
+import importlib.metadata
+import inspect
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from benchmarks import study
+from jrt import cli
 from jrt.cli import main
+from reports import study
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = ("trace", "render", "bench", "study", "report")
+COMMANDS = ("trace", "render", "bench", "stability", "study", "report")
+#: The commands registered by pyproject.toml's [project.entry-points."jrt.commands"].
+REGISTERED = {"bench": "benchmarks.suite:main", "stability": "benchmarks.stability:main",
+              "study": "reports.study:main", "report": "reports.report:main"}
 #: reStructuredText markup that has no place in a terminal's help.
 RST = re.compile(r"``|:(?:func|class|data|meth|mod|attr):`")
 
@@ -49,6 +59,104 @@ def test_delegated_option_errors_name_the_jrt_command(capsys, argv, prog):
     err = capsys.readouterr().err
     assert err.startswith(f"usage: {prog} ") and f"\n{prog}: error: " in err, err
     assert "python -m" not in err
+
+
+def test_the_study_commands_are_registered_entry_points():
+    """The installed entry points are pyproject.toml's, each a main(argv, prog=...)."""
+    registered = cli.registered_commands()
+    assert {name: ep.value for name, ep in registered.items()} == REGISTERED
+    assert tuple(registered) == cli.STUDY_COMMANDS
+    for name, entry_point in registered.items():
+        parameters = inspect.signature(entry_point.load()).parameters
+        assert list(parameters)[:1] == ["argv"] and "prog" in parameters, (name, parameters)
+
+
+def test_help_lists_every_command_without_importing_the_upper_packages():
+    """``jrt --help`` (in a process of its own): a line of help for each registered command,
+    taken from its module's docstring, and none of benchmarks or reports imported."""
+    code = ("import sys\nfrom jrt.cli import main\ntry:\n    main(['--help'])\n"
+            "except SystemExit as done:\n    assert done.code == 0\n"
+            "print('imported:', sorted(m for m in sys.modules "
+            "if m.split('.')[0] in ('benchmarks', 'reports')))")
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    printed = " ".join(run.stdout.split())
+    assert "imported: []" in printed
+    for name, line in [
+            ("bench", "the benchmark suite: every structure on the camel, side by side with "
+                      "Embree, as JSON"),
+            ("stability", "numerical stability on stiff and extreme cases"),
+            ("study", "the whole study of the camel in one command"),
+            ("report", "the report generator: JSON results in, DIR/README.md")]:
+        assert f" {name} {line}" in printed, (name, printed)
+        assert f"(options: jrt {name} --help)" in printed
+
+
+def _entry_points(*registered):
+    """A stand-in for importlib.metadata.entry_points: these jrt.commands entry points."""
+    def entry_points(group):
+        return [importlib.metadata.EntryPoint(name, value, group) for name, value in registered
+                if group == cli.COMMAND_GROUP]
+    return entry_points
+
+
+def test_a_command_that_is_not_installed_says_so(monkeypatch, capsys):
+    monkeypatch.setattr(cli.importlib.metadata, "entry_points",
+                        _entry_points(("report", REGISTERED["report"])))
+    assert main(["bench", "--quick"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jrt bench: error: not installed here") and "jrt.commands" in err
+    assert "registered: report" in err and "pip install -e ." in err
+    text = _help(capsys)
+    assert re.search(r"bench\s+not installed here", text) and "report" in text
+
+
+def test_a_command_whose_module_is_missing_says_so(monkeypatch, capsys):
+    monkeypatch.setattr(cli.importlib.metadata, "entry_points",
+                        _entry_points(("bench", "no_such_package.suite:main")))
+    assert main(["bench"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jrt bench: error: registered as no_such_package.suite:main")
+    assert "No module named 'no_such_package'" in err
+    assert re.search(r"bench\s+not available: no_such_package.suite is not installed",
+                     _help(capsys))
+
+
+def test_render_turntable_without_a_scene_turns_the_default_scene(tmp_path, monkeypatch,
+                                                                  capsys):
+    """``jrt render --turntable N`` alone turns the scene of what ``jrt render`` alone
+    renders (the camel): the same frames as ``--scene camel``, into camel-turntable/."""
+    import imageio.v3 as iio
+
+    monkeypatch.chdir(tmp_path)
+    small = ["--width", "24", "--height", "18"]
+    assert main(["render", "--turntable", "2", *small]) == 0, capsys.readouterr().err
+    assert "camel turntable: 2 images 24x18" in capsys.readouterr().out
+    out = tmp_path / "camel-turntable"
+    assert sorted(p.name for p in out.iterdir()) == [
+        "frame_000.png", "frame_001.png", "turntable.gif"]
+    frames = [iio.imread(out / f"frame_00{i}.png") for i in range(2)]
+    assert frames[0].shape == (18, 24, 3) and not np.array_equal(*frames)
+    assert iio.imread(out / "turntable.gif").shape[:3] == (2, 18, 24)
+    assert main(["render", "--scene", "camel", "--turntable", "2", "-o", "named", *small]) == 0
+    for i, frame in enumerate(frames):
+        assert np.array_equal(frame, iio.imread(tmp_path / "named" / f"frame_00{i}.png"))
+
+
+def test_render_sweep_without_a_scene_varies_the_default_scene(capsys):
+    """The sweep's material is looked up in the default scene (checked before rendering)."""
+    assert main(["render", "--sweep", "glass.B=0:0.02:2"]) == 2
+    assert "scene 'camel' has no material 'glass'; its materials: sand, floor" in (
+        capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("option", [["--turntable", "2"], ["--sweep", "sand.albedo=0:1:2"]])
+def test_render_batches_of_a_mesh_are_refused(capsys, option):
+    assert main(["render", "bunny", *option]) == 2
+    err = capsys.readouterr().err
+    assert f"jrt render: error: {option[0]} applies to scene renders" in err
+    assert "not to a mesh (bunny)" in err and "--scene NAME|FILE" in err
 
 
 def test_study_step_errors_name_the_jrt_command(tmp_path):
