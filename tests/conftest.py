@@ -27,10 +27,20 @@ from jrt.mesh import load_mesh
 from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
-#: The test files that take longest (about 4, 3.5 and 3.5 minutes of a worker), run first:
-#: xdist hands files (--dist loadfile) to its workers in collection order, so a long file
-#: collected last kept one worker busy for minutes after the other had finished.
-SLOW_FILES_FIRST = ("test_study.py", "test_bvh_traversal.py", "test_octree.py")
+#: The test files that take longest (minutes of a worker each), run first: xdist hands
+#: files (--dist loadfile) to its workers in collection order, so a long file collected
+#: last kept one worker busy for minutes after the other had finished.
+SLOW_FILES_FIRST = ("test_study.py", "test_structures.py", "test_bvh_traversal.py",
+                    "test_octree.py")
+
+#: The fast tier (``pytest -m "not slow"``, about two minutes on 2 cores): the modules
+#: that compile no traversal of a real mesh and render nothing. Every test of the other
+#: files is marked ``slow`` here; the full suite (CI's, the README's) runs them all.
+FAST_FILES = frozenset({
+    "test_kernels.py", "test_optics.py", "test_spectral.py", "test_normals.py",
+    "test_camera.py", "test_mesh.py", "test_data.py", "test_scene.py", "test_report.py",
+    "test_architecture.py", "test_registry.py",
+})
 
 
 def pytest_collection_modifyitems(session, config, items):
@@ -39,6 +49,9 @@ def pytest_collection_modifyitems(session, config, items):
         return SLOW_FILES_FIRST.index(name) if name in SLOW_FILES_FIRST else len(
             SLOW_FILES_FIRST)
 
+    for item in items:
+        if item.path.name not in FAST_FILES:
+            item.add_marker(pytest.mark.slow)
     items.sort(key=rank)  # stable: each file keeps its own order
 
 

@@ -24,7 +24,7 @@ import accel
 import jrt
 from benchmarks.stability import aimed_rays
 
-STRUCTURES = ("bvh", "kdtree", "octree", "bsp", "grid")
+STRUCTURES = accel.names(engine=True)
 #: (label, scale, shift): the camel is about 1.4 units across.
 PLACES = (("moved 1e3", 1.0, (1000.0, -700.0, 1300.0)),
           ("moved 1e5", 1.0, (1e5, -7e4, 1.3e5)),

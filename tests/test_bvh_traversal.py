@@ -14,7 +14,7 @@ a fixed ``leaf_bits`` (the same tree: the builder picks the smallest ``leaf_bits
 fits); brute force's triangles are padded with all-zero (degenerate, never hit) rows, as
 brute force pads its own chunks.
 
-Known limitation (SLIVER_BUG below, documented in the README): moller_trumbore and
+Known limitation (SLIVER_BUG below, documented in docs/exactness.md): moller_trumbore and
 plane_barycentric can put a sliver triangle's hit before the triangle's own bounding box,
 beyond the engine's box margin (their t is off by up to 4 %), and the BVH, which culls that
 box, then disagrees with brute force (the BVH's answer is the one nearer the exact one in
@@ -78,50 +78,7 @@ def assert_same_hits(got: dict, want: dict, origins=None, directions=None, conte
 # ---------------------------------------------------------------------------------------------
 
 
-@kernels
-@pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
-def test_camel_closest_hit_matches_brute(camel_bvh, camel_rays, brute_hits, kernel, ray_set):
-    origins, directions = camel_rays[ray_set]
-    want = brute_hits(kernel, ray_set)
-    got = as_numpy(jrt.closest_hit(camel_bvh, origins, directions, kernel=kernel))
-    assert (want["triangle"] >= 0).mean() > 0.1
-    assert_same_hits(got, want, origins, directions, f"{kernel}/{ray_set}")
-
-
 BRUTE_OCCLUDED = 2_000  # rays of the occlusion test that brute force traces itself
-
-
-@kernels
-def test_camel_occluded_matches_brute(camel, camel_bvh, camel_brute, camel_rays, brute_hits,
-                                      kernel):
-    """20k rays, tmax a random multiple (0 to 2) of each ray's closest hit (or of the scene
-    size for a miss), 2% of them cut exactly at their closest hit (strict: not occluded by
-    that triangle).
-
-    Brute force's answer: away from tmax, whether its closest hit comes before tmax; the
-    rays at or near tmax (and as many others, up to BRUTE_OCCLUDED) through brute force's
-    own ``occluded``.
-    """
-    origins, directions = camel_rays["incoherent"]
-    t = brute_hits(kernel, "incoherent")["t"]
-    rng = np.random.default_rng(4)
-    scale = np.where(np.isfinite(t), t, 3 * camel.diagonal)
-    tmax = (rng.uniform(0, 2, len(t)) * scale).astype(np.float32)
-    exact = rng.random(len(t)) < 0.02
-    tmax[exact] = t[exact]
-    with np.errstate(invalid="ignore"):  # inf - inf for misses
-        near = np.isfinite(t) & (np.abs(t - tmax) <= 1e-5 * t)
-    others = np.flatnonzero(~near)
-    traced = np.union1d(np.flatnonzero(near), rng.choice(
-        others, BRUTE_OCCLUDED - near.sum(), replace=False))
-    got = np.asarray(jrt.occluded(camel_bvh, origins, directions, tmax=tmax, kernel=kernel))
-    want = np.where(near, False, t < tmax)
-    want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
-                                           tmax=tmax[traced], kernel=kernel))
-    assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
-    bad = np.flatnonzero(got != want)
-    assert bad.size == 0, (f"{bad.size} rays differ, e.g. {bad[:5]}: bvh {got[bad[:5]]} "
-                           f"tmax {tmax[bad[:5]]} closest t {t[bad[:5]]}")
 
 
 def check_counters(count: jrt.engine.Counters, hit: np.ndarray, structure):
@@ -647,27 +604,6 @@ def tiny(kind="bvh"):
     return accel.build(kind, *TINY_MESH)
 
 
-@pytest.mark.parametrize("kind", ["bvh", "kdtree", "octree", "bsp", "grid", "brute"])
-def test_bad_rays_are_named_by_every_structure(kind):
-    """The engine checks the rays in its own pass (engine.STATUS_BAD_RAYS) and the public
-    functions name the first bad one, as brute force's separate check does: a NaN or
-    infinite origin or direction, a zero direction, a NaN tmax; one bad ray among good
-    ones, on either device's share (odd and even indices)."""
-    structure = tiny(kind)
-    good_o, good_d = np.float32([[0.5, 0.5, 0]] * 5), np.float32([[0, 0, 1]] * 5)
-    cases = [("origins", 3, "o", [np.nan, 0.5, 0]), ("origins", 2, "o", [0.5, np.inf, 0]),
-             ("directions", 1, "d", [0, -np.inf, 1]), ("directions", 4, "d", [0, 0, 0]),
-             ("tmax", 0, "t", np.nan)]
-    for name, index, field, value in cases:
-        o, d, t = good_o.copy(), good_d.copy(), np.full(5, np.inf, np.float32)
-        {"o": o, "d": d, "t": t}[field][index] = value
-        for query in (jrt.closest_hit, jrt.occluded):
-            with pytest.raises(ValueError, match=f"{name} of ray {index} is"):
-                query(structure, o, d, tmax=t)
-    # The good rays alone answer.
-    np.testing.assert_array_equal(np.asarray(jrt.closest_hit(structure, good_o, good_d).t), 1)
-
-
 def test_zero_rays_give_empty_arrays():
     none = np.zeros((0, 3), np.float32)
     structure = tiny()
@@ -719,19 +655,6 @@ def test_unknown_structure_kind_raises():
     for query in (jrt.closest_hit, jrt.occluded):
         with pytest.raises(ValueError, match="quadtree"):
             query(quadtree, o, d)
-
-
-@pytest.mark.parametrize("kind", ["octree", "kdtree", "grid", "brute"])
-def test_arrays_of_another_kind_raise(kind):
-    """A BVH's arrays labelled as another kind: a ValueError names the arrays and layout
-    that kind needs (the octree's traversal once read them as cells and looped forever;
-    read with today's layout, it answered misses)."""
-    structure = tiny()
-    wrong = Structure(kind=kind, arrays=dict(structure.arrays), layout=structure.layout)
-    o, d = np.float32([[0.5, 0.5, -1], [0.2, 0.3, -1]]), np.float32([[0, 0, 1], [0, 0, 1]])
-    for query in (jrt.closest_hit, jrt.occluded):
-        with pytest.raises(ValueError, match=f"a '{kind}' structure needs the arrays"):
-            query(wrong, o, d)
 
 
 def test_a_cycle_raises_instead_of_looping():

@@ -414,43 +414,6 @@ def test_non_finite_vertices_raise():
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("kernel", KERNELS)
-@pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
-def test_camel_closest_hit_matches_brute(camel_octree, camel_rays, brute_hits, kernel,
-                                         ray_set):
-    origins, directions = camel_rays[ray_set]
-    want = brute_hits(kernel, ray_set)
-    got = as_numpy(jrt.closest_hit(camel_octree, origins, directions, kernel=kernel))
-    assert (want["triangle"] >= 0).mean() > 0.1
-    assert_same_hits(got, want, origins, directions, f"octree {kernel}/{ray_set}")
-
-
-@pytest.mark.parametrize("kernel", KERNELS)
-def test_camel_occluded_matches_brute(camel, camel_octree, camel_brute, camel_rays,
-                                      brute_hits, kernel):
-    """20k incoherent rays, tmax a random multiple (0 to 2) of each ray's closest hit,
-    2 % of them cut exactly at it (as tests/test_bvh_traversal.py)."""
-    origins, directions = camel_rays["incoherent"]
-    t = brute_hits(kernel, "incoherent")["t"]
-    rng = np.random.default_rng(5)
-    scale = np.where(np.isfinite(t), t, 3 * camel.diagonal)
-    tmax = (rng.uniform(0, 2, len(t)) * scale).astype(np.float32)
-    exact = rng.random(len(t)) < 0.02
-    tmax[exact] = t[exact]
-    with np.errstate(invalid="ignore"):
-        near = np.isfinite(t) & (np.abs(t - tmax) <= 1e-5 * t)
-    others = np.flatnonzero(~near)
-    traced = np.union1d(np.flatnonzero(near), rng.choice(others, 2000 - near.sum(),
-                                                         replace=False))
-    got = np.asarray(jrt.occluded(camel_octree, origins, directions, tmax=tmax, kernel=kernel))
-    want = np.where(near, False, t < tmax)
-    want[traced] = np.asarray(jrt.occluded(camel_brute, origins[traced], directions[traced],
-                                           tmax=tmax[traced], kernel=kernel))
-    assert near.sum() >= 100 and 0.1 < want.mean() < 0.9
-    bad = np.flatnonzero(got != want)
-    assert bad.size == 0, f"{bad.size} rays differ, e.g. {bad[:5]}"
-
-
 def test_camel_counters(camel_octree, camel_rays, brute_hits):
     origins, directions = camel_rays["incoherent"]
     hits, count = jrt.closest_hit(camel_octree, origins, directions, counters=True)

@@ -12,7 +12,8 @@ import pytest
 import jrt  # noqa: F401  (XLA flags before JAX starts)
 from jrt import optics
 
-# Index ratios of the brief, and their inverses: each pair (n1, n2) is a side to come from.
+# Index ratios from barely refracting (1.0001) through water, glass and diamond to 4.0
+# (germanium), and their inverses: each pair (n1, n2) is a side to come from.
 RATIOS = (1.0001, 1.33, 1.5, 2.4, 4.0)
 PAIRS = [(1.0, r) for r in RATIOS] + [(r, 1.0) for r in RATIOS]
 # Every angle from 0 to 90 degrees, 90 included (grazing incidence).
