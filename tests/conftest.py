@@ -28,10 +28,10 @@ from jrt.raysets import camera_set, incoherent_set
 from jrt.trace import as_numpy
 
 #: The test files that take longest (minutes of a worker each), run first: xdist hands
-#: files (--dist loadfile) to its workers in collection order, so a long file collected
-#: last kept one worker busy for minutes after the other had finished.
-SLOW_FILES_FIRST = ("test_study.py", "test_structures.py", "test_bvh_traversal.py",
-                    "test_octree.py")
+#: files (--dist loadfile --no-loadscope-reorder) to its workers in collection order, so a
+#: long file collected last kept one worker busy for minutes after the other had finished.
+SLOW_FILES_FIRST = ("test_study.py", "test_work_precision.py", "test_structures.py",
+                    "test_bench.py", "test_bvh_traversal.py", "test_octree.py")
 
 #: The fast tier (``pytest -m "not slow"``, about two minutes on 2 cores): the modules
 #: that compile no traversal of a real mesh and render nothing. Every test of the other

@@ -39,6 +39,7 @@ from test_bvh_traversal import KERNELS, assert_same_hits
 import accel
 import jrt
 from accel.structure import Structure
+from benchmarks.stability import strictly_inside
 from jrt.trace import as_numpy
 
 #: Rays of the occlusion test that brute force traces itself (near tmax, and others).
@@ -146,10 +147,8 @@ def test_camel_counters(kind, camel_structures, camel_rays, brute_hits):
 
 
 def inside(mesh, points):
-    """Winding number > 1/2 (libigl), in float64."""
-    wn = igl.winding_number(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64),
-                            points.astype(np.float64))
-    return wn > 0.5
+    """Inside the closed mesh and not on its surface (libigl's winding number, float64)."""
+    return strictly_inside(mesh.vertices, mesh.faces, points)
 
 
 def axis_aligned_through(mesh, targets, normals, step):

@@ -81,7 +81,13 @@ from benchmarks.stability.cli import (
     run,
     standard_params,
 )
-from benchmarks.stability.closed_mesh import aimed_rays, case1, closed_mesh_rays
+from benchmarks.stability.closed_mesh import (
+    aimed_rays,
+    case1,
+    closed_mesh_rays,
+    strictly_inside,
+    winding_numbers,
+)
 from benchmarks.stability.common import (
     BUILD_MEMORY_LIMIT,
     CHUNK,
@@ -155,7 +161,7 @@ __all__ = [
     "outside_distance", "pairwise_hits", "pbrt_offset_numpy", "plane_rays", "probe_worker",
     "quick_params", "random_triangle_reintersection", "record", "renderer_offset", "run",
     "secondary_rays", "self_intersection", "sliver_rays", "spawn", "stack_probe",
-    "stacked_layers", "standard_params", "summary", "surface_frame",
+    "stacked_layers", "standard_params", "strictly_inside", "summary", "surface_frame",
     "synthetic_degenerates", "trace", "transformed", "triangle_quality", "ulp32",
-    "ulp_offset", "with_mismatches_vs_brute",
+    "ulp_offset", "winding_numbers", "with_mismatches_vs_brute",
 ]
