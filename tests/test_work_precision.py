@@ -1,10 +1,10 @@
-"""The work–precision runs (``benchmarks.work_precision``) on a tiny glass camel.
+"""The work–precision runs (``benchmarks.work_precision``) on a small glass camel.
 
-One run, 24x18 pixels on the 19k camel, two or three points per study and a depth-10,
-32-sample reference, through ``main`` (so the JSON is the one the command writes): the
-records carry what ``reports.report`` needs, the depth and samples studies get closer to
-the reference, the reference is not a record (and a point identical to it would have a null
-PSNR, not an infinite one), and the report generator draws the file.
+One run at the quick size (64x48 pixels) on the 19k camel, two or three points per study
+and a depth-10, 32-sample reference, through ``main`` (so the JSON is the one the command
+writes): the records carry what ``reports.report`` needs, the depth and samples studies get
+closer to the reference, the reference is not a record (and a point identical to it would
+have a null PSNR, not an infinite one), and the report generator draws the file.
 """
 
 from __future__ import annotations
@@ -19,7 +19,9 @@ import jrt  # noqa: F401  (XLA flags before JAX starts)
 from benchmarks import work_precision as wp
 from reports.report import classify, generate
 
-WIDTH, HEIGHT = 24, 18
+#: The quick study's own size (``wp.SIZES``), so that ``jrt study --quick`` (test_study.py,
+#: run beside this file) finds these renderer programs in the session's compilation cache.
+WIDTH, HEIGHT = wp.SIZES[1]
 STUDIES = {"Whitted depth", "wavelength samples", "pruning threshold",
            "exact tree vs sampled branches", "Fresnel exact vs Schlick", "kernel"}
 PLAN = wp.plan  # the full plan, before the fixture patches it
@@ -41,8 +43,7 @@ def _tiny_plan(quick, settings):
 def result(tmp_path_factory, monkeypatch_module):
     out = tmp_path_factory.mktemp("wp") / "wp.json"
     monkeypatch_module.setattr(wp, "plan", _tiny_plan)
-    assert wp.main(["--quick", "--width", str(WIDTH), "--height", str(HEIGHT),
-                    "--no-progress", "-o", str(out)]) == 0
+    assert wp.main(["--quick", "--no-progress", "-o", str(out)]) == 0
     return out, json.loads(out.read_text())
 
 
