@@ -146,11 +146,6 @@ def test_camel_counters(kind, camel_structures, camel_rays, brute_hits):
 # ---------------------------------------------------------------------------------------------
 
 
-def inside(mesh, points):
-    """Inside the closed mesh and not on its surface (libigl's winding number, float64)."""
-    return strictly_inside(mesh.vertices, mesh.faces, points)
-
-
 def axis_aligned_through(mesh, targets, normals, step):
     """Rays along ±x/±y/±z (closest to the outward normal) ending at ``targets``, from
     interior points: only the axis coordinate of the origin differs from the target's."""
@@ -159,7 +154,7 @@ def axis_aligned_through(mesh, targets, normals, step):
     directions = np.zeros_like(targets)
     directions[np.arange(len(targets)), axis] = sign
     origins = targets - step * directions
-    keep = inside(mesh, origins)
+    keep = strictly_inside(mesh.vertices, mesh.faces, origins)
     return origins[keep].astype(np.float32), directions[keep].astype(np.float32)
 
 
@@ -180,7 +175,7 @@ def crack_rays(camel):
     families["edge midpoints"] = axis_aligned_through(camel, midpoints, edge_normals, step)
     lo, hi = camel.bounds
     candidates = lo + rng.uniform(size=(20 * PER_FAMILY, 3)) * (hi - lo)
-    interior = candidates[inside(camel, candidates)][:PER_FAMILY].astype(np.float32)
+    interior = candidates[strictly_inside(v, f, candidates)][:PER_FAMILY].astype(np.float32)
     targets = v[rng.choice(len(v), len(interior))]
     directions = targets - interior
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)

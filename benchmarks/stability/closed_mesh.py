@@ -33,7 +33,7 @@ INSIDE, OUTSIDE = 0.75, 0.25
 
 
 def winding_numbers(vertices, faces, points) -> np.ndarray:
-    """float64 [N]: libigl's generalised winding number of each point, in float64."""
+    """float64 [N]: libigl's generalised winding number of each point."""
     return np.asarray(igl.winding_number(np.asarray(vertices, np.float64),
                                          np.asarray(faces).astype(np.int64),
                                          np.asarray(points, np.float64)))
