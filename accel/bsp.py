@@ -438,4 +438,5 @@ KIND = StructureKind(
     name="bsp", build=build,
     arrays=frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids", "frame"}),
     layout=frozenset({"leaf_bits"}), traversal="jrt.bsp:traversal", planes=stored_planes,
+    rows=frozenset({"nodes", "references", "triangles", "triangle_ids"}),
     summary="BSP tree: split planes along the axes and the triangles' own planes")

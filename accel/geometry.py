@@ -196,8 +196,16 @@ def triangles_overlap_boxes(triangles: np.ndarray, lo: np.ndarray, hi: np.ndarra
     return overlap
 
 
+#: The fewest bits a leaf reference gives its count (leaves of up to 15 rows). The bits
+#: are part of a structure's static layout, so each value compiles a traversal of its own:
+#: with this floor the structures of small meshes, whose largest leaves hold 1 to 15 rows,
+#: share one (``jrt.trace.padded_structure`` pads their arrays to the same lengths).
+MIN_LEAF_BITS = 4
+
+
 def leaf_bits_for(max_count: int, slots: int) -> int:
-    """Bits for a leaf's count in a leaf reference ``~((first << bits) | count)``.
+    """Bits for a leaf's count in a leaf reference ``~((first << bits) | count)``: enough
+    for ``max_count``, and at least :data:`MIN_LEAF_BITS` where that fits.
 
     ``slots`` is the number of rows (triangles or references) a leaf's ``first`` may
     point into. Raises when the code would not fit in an int32.
@@ -206,6 +214,8 @@ def leaf_bits_for(max_count: int, slots: int) -> int:
     if (int(slots) + 1) << bits >= 2**31:
         raise ValueError(f"{slots} leaf rows with leaves of up to {max_count} do not fit "
                          "an int32 leaf reference")
+    if (int(slots) + 1) << MIN_LEAF_BITS < 2**31:
+        bits = max(bits, MIN_LEAF_BITS)
     return bits
 
 

@@ -431,4 +431,5 @@ KIND = StructureKind(
     arrays=frozenset({"cell_start", "grid", "references", "skip", "triangles",
                       "triangle_ids", "frame"}),
     traversal="jrt.grid:traversal", planes=stored_planes,
+    rows=frozenset({"cell_start", "skip", "references", "triangles", "triangle_ids"}),
     summary="uniform grid: cells of equal size, walked cell by cell (3D-DDA)")

@@ -414,4 +414,5 @@ KIND = StructureKind(
     name="kdtree", build=build,
     arrays=frozenset({"nodes", "bounds", "references", "triangles", "triangle_ids", "frame"}),
     layout=frozenset({"leaf_bits"}), traversal="jrt.kdtree:traversal", planes=stored_planes,
+    rows=frozenset({"nodes", "references", "triangles", "triangle_ids"}),
     summary="kd-tree: axis-aligned split planes chosen by the SAH")

@@ -375,4 +375,5 @@ KIND = StructureKind(
     name="octree", build=build,
     arrays=frozenset({"nodes", "references", "triangles", "triangle_ids", "frame"}),
     layout=frozenset({"leaf_bits"}), traversal="jrt.octree:traversal", planes=stored_planes,
+    rows=frozenset({"nodes", "references", "triangles", "triangle_ids"}),
     summary="octree: cubic cells split at their centres, SAH-terminated")

@@ -49,6 +49,11 @@ class StructureKind:
             faces, split planes, cell walls): where rays that start on them test its
             traversal's tie rules. ``None`` when it stores none.
         summary: one line for listings (``jrt bench --help``, the docs).
+        rows: the arrays whose rows the traversal reaches only through indices that the
+            structure itself stores (nodes, leaf references, triangles), never by their
+            count: ``jrt`` may pad them at the end, where no index points, so that
+            structures of similar sizes share one compiled traversal
+            (``jrt.trace.padded_structure``). Empty (the default): nothing is padded.
     """
 
     name: str
@@ -58,6 +63,7 @@ class StructureKind:
     traversal: str | Callable | None = None
     planes: Callable[[Structure], list[np.ndarray]] | None = None
     summary: str = ""
+    rows: frozenset[str] = frozenset()
 
     def __post_init__(self):
         if not (isinstance(self.name, str) and self.name.isidentifier()):
@@ -73,6 +79,10 @@ class StructureKind:
                              "'module:function' or a function")
         object.__setattr__(self, "arrays", frozenset(self.arrays))
         object.__setattr__(self, "layout", frozenset(self.layout))
+        object.__setattr__(self, "rows", frozenset(self.rows))
+        if not self.rows <= self.arrays:
+            raise ValueError(f"kind {self.name!r}: rows {sorted(self.rows - self.arrays)} are "
+                             f"not among its arrays {sorted(self.arrays)}")
 
     @property
     def engine(self) -> bool:

@@ -19,7 +19,9 @@ Outside a caller's ``jit`` the rays are padded up to the next size of
 per doubling of the count) and the answers sliced back. A padding ray can hit nothing
 (:func:`jrt.engine.pad_rays`): the engine answers it before any lane takes it, brute force
 skips chunks of them, and the real rays' answers are those of an unpadded call, bit for
-bit. ``JRT_SIZE_BUCKETS=0`` turns the buckets off (for a measurement, or a caller that
+bit. A small structure (:data:`PAD_MAX_BYTES`) is padded to size buckets too
+(:func:`padded_structure`), so that the structures of similar small meshes share a
+program. ``JRT_SIZE_BUCKETS=0`` turns the buckets off (for a measurement, or a caller that
 knows its sizes). Inside a caller's ``jit`` the shapes are the caller's, and the rays go
 through as they are.
 
@@ -41,6 +43,7 @@ float32 on the way in; the hits are float32 and int32).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 
@@ -89,6 +92,38 @@ def bucket_size(n: int) -> int:
         return MIN_BUCKET
     power = 1 << (n - 1).bit_length()  # the smallest power of two >= n
     return 3 * power // 4 if n <= 3 * power // 4 else power
+
+
+#: Structures up to this many bytes are padded by :func:`padded` (2 MiB: the 19k-triangle
+#: camel under every kind). Below it a compile (about a second a traversal on a CPU) costs
+#: far more than copying the arrays; above it the arrays are passed as built, so a large
+#: structure costs no extra memory or copy.
+PAD_MAX_BYTES = 2 << 20
+
+
+def padded_structure(structure: Structure) -> Structure:
+    """``structure`` with the arrays its kind declares as ``rows`` (:class:`accel.StructureKind`)
+    padded at the end to a size bucket (:func:`jrt.trace.bucket_size`: 1024 rows, then 2^k
+    and 3 x 2^(k-1)). No stored index points past the real rows, so a traversal reads the
+    same rows and returns the same hits, bit for bit; but structures of similar sizes (the
+    tiny meshes of a test suite, a mesh moved and rebuilt) then share one compiled program.
+    Padding rows are zeros (a zero triangle, which no kernel hits), ``triangle_ids`` -1.
+
+    Returned as is: a structure over :data:`PAD_MAX_BYTES`, a kind that declares no rows,
+    arrays that are traced (under ``jit``, the caller's program fixes the shapes)."""
+    rows = accel.kind(structure.kind).rows
+    arrays = structure.arrays
+    if not rows or _is_traced(*arrays.values()) or structure.nbytes > PAD_MAX_BYTES:
+        return structure
+    out = {}
+    for name, a in arrays.items():
+        extra = bucket_size(int(np.shape(a)[0])) - int(np.shape(a)[0]) if name in rows else 0
+        if extra:
+            a = np.asarray(a)
+            fill = -1 if name == "triangle_ids" else 0
+            a = np.concatenate([a, np.full((extra, *a.shape[1:]), fill, a.dtype)])
+        out[name] = a
+    return dataclasses.replace(structure, arrays=out)
 
 
 def _buckets_enabled() -> bool:
@@ -338,6 +373,8 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
                    stack_size=stack_size)
     if is_brute:
         _check_ray_values(origins, directions, tmax, named=rays)  # padding rays are valid
+    if not is_brute and _buckets_enabled():
+        structure = padded_structure(structure)
     if traced or _is_traced(*jax.tree.leaves(structure)):
         # Traced (jit, vmap): the custom_vmap function, so that a vmap anywhere around
         # this call batches it as one call on all the items' rays (_flat_query).

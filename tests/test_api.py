@@ -103,6 +103,37 @@ def test_a_new_ray_count_in_a_bucket_compiles_nothing(built, rays, monkeypatch):
         assert program._cache_size() == compiled + 1
 
 
+def test_a_small_structure_of_another_size_compiles_nothing():
+    """Two small meshes (80 and 64 triangles, so that every kind's arrays differ in
+    length, with the same static layout) share one traversal program per kind: their
+    structures are padded to the same size buckets (``jrt.trace.padded_structure``). Each
+    still returns brute force's hits, and the structure the caller holds keeps its own
+    arrays."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    meshes = [(sphere.vertices.astype(np.float32), sphere.faces),
+              (sphere.vertices.astype(np.float32), sphere.faces[16:])]
+    rng = np.random.default_rng(5)
+    origins = rng.uniform(-2, 2, (300, 3)).astype(np.float32)
+    directions = -origins + rng.normal(0, 0.3, (300, 3)).astype(np.float32)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    for kind in accel.names(engine=True):
+        built = [accel.build(kind, v, f) for v, f in meshes]
+        assert built[0].num_triangles == 80 and built[1].num_triangles == 64
+        # The layout (leaf_bits) is static: a program of its own whatever the lengths.
+        assert built[0].layout == built[1].layout, kind
+        counts = []
+        for structure, (v, f) in zip(built, meshes, strict=True):
+            got = as_numpy(jrt.closest_hit(structure, origins, directions))
+            want = as_numpy(jrt.closest_hit(accel.build("brute", v, f), origins, directions))
+            assert_same(got, want, kind)
+            assert (got["triangle"] >= 0).mean() > 0.3
+            counts.append(engine.compiled_programs())
+        assert counts[1] == counts[0], f"{kind}: the second mesh compiled a program"
+        assert built[1]["triangles"].shape == (64, 3, 3)
+
+
 @pytest.mark.parametrize("kind", accel.NAMES)
 def test_padded_calls_return_brute_forces_unpadded_hits(kind, built, rays, reference):
     o, d, t = rays

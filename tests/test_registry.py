@@ -72,5 +72,8 @@ def test_unknown_names_and_bad_declarations_are_errors():
                             traversal="jrt.bvh.traversal")
     with pytest.raises(ValueError, match="identifier"):
         accel.StructureKind(name="a b", build=bvh.build, arrays=bvh.arrays)
+    with pytest.raises(ValueError, match=r"rows \['cells'\] are not among its arrays"):
+        accel.StructureKind(name="bad", build=bvh.build, arrays=bvh.arrays,
+                            rows=frozenset({"nodes", "cells"}))
     with pytest.raises(TypeError, match="StructureKind"):
         accel.register("bvh")
