@@ -4,9 +4,14 @@ built once."""
 from __future__ import annotations
 
 import atexit
+import fcntl
+import json
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +24,12 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _cache = tempfile.mkdtemp(prefix="jrt-tests-jax-cache-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+# One folder for what the whole session makes once and several files read (the quick
+# study), shared by the xdist workers the same way.
+if "JRT_TEST_SESSION_DIR" not in os.environ:
+    _session = tempfile.mkdtemp(prefix="jrt-tests-session-")
+    os.environ["JRT_TEST_SESSION_DIR"] = _session
+    atexit.register(shutil.rmtree, _session, ignore_errors=True)
 
 import accel
 import jrt  # (XLA flags before JAX starts)
@@ -30,8 +41,11 @@ from jrt.trace import as_numpy
 #: The test files that take longest (minutes of a worker each), run first: xdist hands
 #: files (--dist loadfile --no-loadscope-reorder) to its workers in collection order, so a
 #: long file collected last kept one worker busy for minutes after the other had finished.
-SLOW_FILES_FIRST = ("test_study.py", "test_work_precision.py", "test_structures.py",
-                    "test_bench.py", "test_bvh_traversal.py", "test_octree.py")
+SLOW_FILES_FIRST = ("test_study.py", "test_structures.py", "test_bench.py",
+                    "test_bvh_traversal.py", "test_octree.py")
+#: The files that read the quick study's results (:func:`quick_study`), run last: by the
+#: time the other worker reaches them, the study (test_study.py, first) has finished.
+READERS_LAST = ("test_work_precision.py",)
 
 #: The fast tier (``pytest -m "not slow"``, about two minutes on 2 cores): the modules
 #: that compile no traversal of a real mesh and render nothing. Every test of the other
@@ -46,6 +60,8 @@ FAST_FILES = frozenset({
 def pytest_collection_modifyitems(session, config, items):
     def rank(item):
         name = item.path.name
+        if name in READERS_LAST:
+            return len(SLOW_FILES_FIRST) + 1
         return SLOW_FILES_FIRST.index(name) if name in SLOW_FILES_FIRST else len(
             SLOW_FILES_FIRST)
 
@@ -140,3 +156,37 @@ def brute_hits(camel_brute, camel_rays):
         return cache[kernel, ray_set]
 
     return get
+
+
+#: The quick study's command line (after ``jrt``): two structures and brute force keep it
+#: to a few minutes; every structure has its own tests in the suites'.
+QUICK_STUDY = ("study", "--quick", "--structures", "bvh,grid")
+
+
+@pytest.fixture(scope="session")
+def quick_study():
+    """``jrt study --quick --structures bvh,grid``, as a user runs it (a process of its own),
+    once per test session: ``(folder, printed)``, its output folder and what it printed.
+
+    The xdist workers share it through the session folder: the first to ask runs it under
+    a file lock, the others wait on the lock and read it. A failed run is recorded there
+    too, so that every reader fails with its error instead of running it again."""
+    root = Path(os.environ["JRT_TEST_SESSION_DIR"])
+    out, record = root / "quick-study" / "camel", root / "quick-study.json"
+    with open(root / "quick-study.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not record.exists():
+                run = subprocess.run(
+                    [sys.executable, "-c",
+                     "import sys; from jrt.cli import main; sys.exit(main())",
+                     *QUICK_STUDY, "-o", str(out)],
+                    cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True,
+                    timeout=1200)
+                record.write_text(json.dumps({"returncode": run.returncode,
+                                              "stdout": run.stdout, "stderr": run.stderr}))
+            done = json.loads(record.read_text())
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    assert done["returncode"] == 0, done["stderr"][-3000:]
+    return out, done["stdout"]

@@ -44,26 +44,19 @@ def test_study_rejects_an_unknown_structure(tmp_path, capsys):
     assert "unknown structure(s) ['octtree']" in capsys.readouterr().err
 
 
-def test_quick_study_end_to_end(tmp_path):
-    """``jrt study --quick``, the whole chain as a user runs it (a process of its own, as
-    the command would be): every step's JSON, the renders, the report and its figures,
-    each checked against its own schema or format. Two structures (and brute force) keep
-    it to a few minutes of CI; every structure has its own tests in the suites'."""
+def test_quick_study_end_to_end(quick_study):
+    """``jrt study --quick`` (``conftest.quick_study``), the whole chain as a user runs it
+    (a process of its own, as the command would be): every step's JSON, the renders, the
+    report and its figures, each checked against its own schema or format. Two structures
+    (and brute force) keep it to a few minutes of CI; every structure has its own tests in
+    the suites'. ``test_work_precision.py`` checks its work-precision JSON further."""
     import json
-    import subprocess
-    import sys
 
     from benchmarks.schema import validate
     from benchmarks.stability import CASES
     from reports.report import PNG_SIGNATURE
 
-    out = tmp_path / "camel"
-    run = subprocess.run(
-        [sys.executable, "-c", "import sys; from jrt.cli import main; sys.exit(main())",
-         "study", "--quick", "--structures", "bvh,grid", "-o", str(out)],
-        cwd=ROOT, capture_output=True, text=True, timeout=1200)
-    assert run.returncode == 0, run.stderr[-3000:]
-    printed = run.stdout
+    out, printed = quick_study
     print(printed[-2000:])
     for step in ("bench", "stability", "work_precision", "renders"):
         assert f"[study] {step}: " in printed and f"{step}: skipped" not in printed

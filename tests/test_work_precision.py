@@ -1,10 +1,12 @@
-"""The work–precision runs (``benchmarks.work_precision``) on a small glass camel.
+"""The work–precision study (``benchmarks.work_precision``) on the glass camel.
 
-One run at the quick size (64x48 pixels) on the 19k camel, two or three points per study
-and a depth-10, 32-sample reference, through ``main`` (so the JSON is the one the command
-writes): the records carry what ``reports.report`` needs, the depth and samples studies get
-closer to the reference, the reference is not a record (and a point identical to it would
-have a null PSNR, not an infinite one), and the report generator draws the file.
+Its JSON is the quick study's (``conftest.quick_study``: ``jrt study --quick``, whose
+work-precision step runs ``benchmarks.work_precision --quick``: the 19k camel at 64x48
+pixels, every study's quick points and a depth-10, 32-sample reference): the records carry
+what ``reports.report`` needs, the depth and samples studies get closer to the reference,
+the reference is not a record (and a point identical to it would have a null PSNR, not an
+infinite one), and the report generator draws the file. (The study runs once per test
+session; this file is run last, when the study has finished.)
 """
 
 from __future__ import annotations
@@ -19,38 +21,16 @@ import jrt  # noqa: F401  (XLA flags before JAX starts)
 from benchmarks import work_precision as wp
 from reports.report import classify, generate
 
-#: The quick study's own size (``wp.SIZES``), so that ``jrt study --quick`` (test_study.py,
-#: run beside this file) finds these renderer programs in the session's compilation cache.
+#: The quick study's size (``wp.SIZES``).
 WIDTH, HEIGHT = wp.SIZES[1]
 STUDIES = {"Whitted depth", "wavelength samples", "pruning threshold",
            "exact tree vs sampled branches", "Fresnel exact vs Schlick", "kernel"}
-PLAN = wp.plan  # the full plan, before the fixture patches it
-
-
-def _tiny_plan(quick, settings):
-    """Two or three points per study, fewest compiles (each sample count compiles)."""
-    keep = {"Whitted depth": ("depth 1", "depth 2", "depth 4"),
-            "wavelength samples": ("4 samples", "16 samples"),
-            "pruning threshold": ("threshold 0.1", "threshold 0.001"),
-            "exact tree vs sampled branches": (f"tree (depth {settings.max_depth})",
-                                               "sampled 1 spp"),
-            "Fresnel exact vs Schlick": ("Fresnel exact", "Fresnel schlick"),
-            "kernel": ("moller_trumbore float32", "watertight float32")}
-    return [p for p in PLAN(True, settings) if p["method"] in keep[p["study"]]]
 
 
 @pytest.fixture(scope="module")
-def result(tmp_path_factory, monkeypatch_module):
-    out = tmp_path_factory.mktemp("wp") / "wp.json"
-    monkeypatch_module.setattr(wp, "plan", _tiny_plan)
-    assert wp.main(["--quick", "--no-progress", "-o", str(out)]) == 0
-    return out, json.loads(out.read_text())
-
-
-@pytest.fixture(scope="module")
-def monkeypatch_module():
-    with pytest.MonkeyPatch.context() as mp:
-        yield mp
+def result(quick_study):
+    path = quick_study[0] / "work_precision.json"
+    return path, json.loads(path.read_text())
 
 
 def test_records_have_what_the_report_needs(result):
