@@ -94,7 +94,7 @@ def bucket_size(n: int) -> int:
     return 3 * power // 4 if n <= 3 * power // 4 else power
 
 
-#: Structures up to this many bytes are padded by :func:`padded` (2 MiB: the 19k-triangle
+#: Structures up to this many bytes are padded by :func:`padded_structure` (2 MiB: the 19k-triangle
 #: camel under every kind). Below it a compile (about a second a traversal on a CPU) costs
 #: far more than copying the arrays; above it the arrays are passed as built, so a large
 #: structure costs no extra memory or copy.
@@ -115,14 +115,13 @@ def padded_structure(structure: Structure) -> Structure:
     arrays = structure.arrays
     if not rows or _is_traced(*arrays.values()) or structure.nbytes > PAD_MAX_BYTES:
         return structure
-    out = {}
-    for name, a in arrays.items():
-        extra = bucket_size(int(np.shape(a)[0])) - int(np.shape(a)[0]) if name in rows else 0
+    out = dict(arrays)
+    for name in rows:
+        a = np.asarray(arrays[name])
+        extra = bucket_size(a.shape[0]) - a.shape[0]
         if extra:
-            a = np.asarray(a)
             fill = -1 if name == "triangle_ids" else 0
-            a = np.concatenate([a, np.full((extra, *a.shape[1:]), fill, a.dtype)])
-        out[name] = a
+            out[name] = np.concatenate([a, np.full((extra, *a.shape[1:]), fill, a.dtype)])
     return dataclasses.replace(structure, arrays=out)
 
 
@@ -373,7 +372,7 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
                    stack_size=stack_size)
     if is_brute:
         _check_ray_values(origins, directions, tmax, named=rays)  # padding rays are valid
-    if not is_brute and _buckets_enabled():
+    if _buckets_enabled():  # (brute force declares no rows: it tests every triangle)
         structure = padded_structure(structure)
     if traced or _is_traced(*jax.tree.leaves(structure)):
         # Traced (jit, vmap): the custom_vmap function, so that a vmap anywhere around
