@@ -158,9 +158,16 @@ def brute_hits(camel_brute, camel_rays):
     return get
 
 
-#: The quick study's command line (after ``jrt``): two structures and brute force keep it
-#: to a few minutes; every structure has its own tests in the suites'.
-QUICK_STUDY = ("study", "--quick", "--structures", "bvh,grid")
+#: The quick study's structures and command line (after ``jrt``): two structures and brute
+#: force keep it to a few minutes; every structure has its own tests in the suites'.
+QUICK_STUDY_STRUCTURES = ("bvh", "grid")
+QUICK_STUDY = ("study", "--quick", "--structures", ",".join(QUICK_STUDY_STRUCTURES))
+
+
+@pytest.fixture(scope="session")
+def quick_study_structures():
+    """The structures the quick study (:func:`quick_study`) benchmarks, in its order."""
+    return list(QUICK_STUDY_STRUCTURES)
 
 
 @pytest.fixture(scope="session")

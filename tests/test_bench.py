@@ -1,21 +1,19 @@
-"""The benchmark suite's smoke run (``python -m benchmarks --quick``) against its schema.
+"""The benchmark suite's quick run (``jrt bench --quick``) against its schema.
 
-The suite runs once, in this process, as ``python -m benchmarks --quick`` would, on a tiny
-mesh (a sphere and a box beside it, and its 4x subdivision for the scaling) with two
-structures, so that it stays within a minute: each structure compiles four queries
-(closest hit and any-hit, with and without counters) whatever the mesh. Its JSON is
-checked against ``benchmarks.schema`` (and by ``jsonschema`` where installed), then for
-facts the schema does not state: every structure and set present, ratios to Embree equal
-to the recorded rates' quotient, zero mismatches against brute force, repetition lists
-of the requested lengths.
+The run is the quick study's bench step (``conftest.quick_study``: ``jrt study --quick``,
+once per test session, whose first step is ``python -m benchmarks --quick`` with two
+structures on the 19k camel, Embree, trimesh, the scaling to the 69k camel and the
+turntable). Its JSON is checked against ``benchmarks.schema`` (and by ``jsonschema`` where
+installed), then for facts the schema does not state: every structure and set present,
+ratios to Embree equal to the recorded rates' quotient, zero mismatches against brute
+force, repetition lists of the requested lengths. A user's own mesh file (``--mesh PATH``)
+is checked on its own: how it loads and the scaling ladder of its subdivisions.
 """
 
 from __future__ import annotations
 
 import copy
 import json
-import runpy
-import sys
 
 import jax
 import numpy as np
@@ -25,34 +23,12 @@ import trimesh
 from benchmarks import peers, suite
 from benchmarks.schema import SCHEMA, validate
 
-STRUCTURES = ["bvh", "kdtree"]
 SETS = ["camera", "shadow", "reflected", "refracted", "incoherent"]
 
 
 @pytest.fixture(scope="module")
-def tiny_mesh(tmp_path_factory):
-    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    box = trimesh.creation.box(extents=(0.6, 0.6, 0.6))
-    box.apply_translation((1.4, 0.3, 0.2))
-    path = tmp_path_factory.mktemp("bench") / "tiny.off"
-    trimesh.util.concatenate([sphere, box]).export(path)
-    return path
-
-
-@pytest.fixture(scope="module")
-def results(tiny_mesh, tmp_path_factory):
-    out = tmp_path_factory.mktemp("bench") / "bench.json"
-    argv = ["python -m benchmarks", "--quick", "--mesh", str(tiny_mesh), "--structures",
-            ",".join(STRUCTURES), "--trimesh-rays", "8", "--turntable-frames",
-            "2",
-            "--no-progress", "-o", str(out)]
-    saved = sys.argv
-    sys.argv = argv
-    try:
-        runpy.run_module("benchmarks", run_name="__main__", alter_sys=False)
-    finally:
-        sys.argv = saved
-    return json.loads(out.read_text())
+def results(quick_study):
+    return json.loads((quick_study[0] / "bench.json").read_text())
 
 
 def _records(results, kind, **match):
@@ -83,7 +59,7 @@ def test_validate_names_the_first_problem(results):
         validate(broken)
 
 
-def test_machine_and_parameters(results):
+def test_machine_and_parameters(results, quick_study_structures):
     machine, params = results["machine"], results["parameters"]
     assert machine["cores"] >= 1 and machine["cpu"]
     assert machine["versions"]["jax"] == jax.__version__
@@ -91,17 +67,18 @@ def test_machine_and_parameters(results):
     assert machine["device"]["count"] == len(jax.local_devices())
     commit = machine["git_commit"]
     assert commit is None or (len(commit) == 40 and int(commit, 16) >= 0)
-    assert params["quick"] is True and params["structures"] == STRUCTURES
+    assert params["quick"] is True and params["structures"] == quick_study_structures
     assert params["camera_rays"] == params["rays"] == 64 * 64
     assert [s["name"] for s in params["sets"]] == SETS  # jrt.optics is there
 
 
-def test_every_structure_and_set_present(results):
+def test_every_structure_and_set_present(results, quick_study_structures):
     for kind in ("build", "scaling", "cost_model"):
-        assert sorted(r["structure"] for r in _records(results, kind)) == sorted(STRUCTURES)
+        benched = sorted(r["structure"] for r in _records(results, kind))
+        assert benched == sorted(quick_study_structures)
     for kind in ("trace", "correctness"):
         pairs = sorted((r["structure"], r["set"]) for r in _records(results, kind))
-        assert pairs == sorted((s, t) for s in STRUCTURES for t in SETS)
+        assert pairs == sorted((s, t) for s in quick_study_structures for t in SETS)
     assert sorted(r["set"] for r in _records(results, "peer", peer="embree")) == sorted(SETS)
     for peer in ("trimesh", "open3d", "mitsuba"):
         assert _records(results, "peer", peer=peer), peer
@@ -112,11 +89,11 @@ def test_every_structure_and_set_present(results):
     assert statuses == ({"ok"} if importlib.util.find_spec("rtree") else {"not installed"})
 
 
-def test_heatmaps_average_the_camera_counters(results):
+def test_heatmaps_average_the_camera_counters(results, quick_study_structures):
     """The per-pixel maps hold the same counters as the camera trace's summary: over
     whole blocks their mean is the mean per ray, their max at most the max."""
     camera = results["parameters"]["camera"]
-    for name in STRUCTURES:
+    for name in quick_study_structures:
         (hm,) = _records(results, "heatmap", structure=name)
         (trace,) = _records(results, "trace", structure=name, set="camera")
         assert hm["width"] * hm["block"] == camera["width"]
@@ -133,7 +110,8 @@ def test_turntable_batched_against_the_loop(results):
     """The glass camel's turntable: the batch equals the loop of single renders, and the
     ratio is the batch's rate over the faster loop's."""
     (rec,) = _records(results, "turntable")
-    assert rec["frames"] == 2 and rec["batch_devices"] == len(jax.local_devices())
+    assert rec["frames"] == suite.DEFAULTS["quick"]["turntable_frames"]
+    assert rec["batch_devices"] == len(jax.local_devices())
     best = max(rec["loop_images_per_s"], rec["loop_same_capacities_images_per_s"])
     assert rec["ratio"] == pytest.approx(rec["batched_images_per_s"] / best)
     assert rec["peak_radiance"] > 0
@@ -181,9 +159,10 @@ def test_repetition_lists_have_the_requested_length(results):
     for r in _records(results, "trace") + _records(results, "peer", peer="embree"):
         assert len(r["repeats"]) == params["repeats"]
     for r in _records(results, "scaling"):
-        main, other = r["rows"]  # --quick: the mesh and its 4x subdivision
+        main, other = r["rows"]  # --quick: the 19k camel and the 69k camel
         assert main["from_main_run"] and not other["from_main_run"]
-        assert other["triangles"] == 4 * main["triangles"]
+        assert (main["mesh"], other["mesh"]) == ("camel-19k", "camel")
+        assert other["triangles"] > 3 * main["triangles"]
         assert len(main["build_repeats"]) == params["builds"]
         assert len(main["trace_repeats"]) == params["repeats"]
         assert len(other["build_repeats"]) == params["scaling_builds"]
@@ -200,6 +179,41 @@ def test_cost_model_predicts_its_points(results):
             model = point["rays"] * (model + r["c_ray_ns"]) * 1e-9
             assert point["predicted_seconds"] == pytest.approx(model, rel=1e-9)
         assert r["residual"] >= 0
+
+
+@pytest.fixture(scope="module")
+def tiny_mesh(tmp_path_factory):
+    """A user's own mesh file: a sphere and a box beside it."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    box = trimesh.creation.box(extents=(0.6, 0.6, 0.6))
+    box.apply_translation((1.4, 0.3, 0.2))
+    path = tmp_path_factory.mktemp("bench") / "tiny.off"
+    trimesh.util.concatenate([sphere, box]).export(path)
+    return path
+
+
+def test_a_users_mesh_loads_and_scales_by_subdivision(tiny_mesh):
+    """``--mesh PATH``: the file is the benchmarked mesh (the camels are not), and its
+    scaling ladder is itself then its 4x, 16x and 64x subdivisions, as many as asked."""
+    args = suite.build_parser().parse_args(["--quick", "--mesh", str(tiny_mesh)])
+    params = suite._resolve(args)
+    assert params["mesh"] == str(tiny_mesh)
+    mesh = suite._load(params["mesh"])
+    loaded = trimesh.load(tiny_mesh, process=False)
+    assert len(mesh.faces) == len(loaded.faces) and len(mesh.vertices) == len(loaded.vertices)
+    ladder = suite.scaling_ladder(mesh, "tiny", params["scaling"])
+    assert [label for label, _ in ladder] == ["tiny", "tiny x4"]
+    assert ladder[0][1]() is mesh
+    finer = ladder[1][1]()
+    assert len(finer.faces) == 4 * len(mesh.faces)
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    assert (finer.vertices >= lo - 1e-6).all() and (finer.vertices <= hi + 1e-6).all()
+    assert [label for label, _ in suite.scaling_ladder(mesh, "tiny", 4)] == [
+        "tiny", "tiny x4", "tiny x16", "tiny x64"]
+    assert [label for label, _ in suite.scaling_ladder(None, "camel-19k", 3)] == [
+        "camel-19k", "camel", "camel x4"]
+    with pytest.raises(suite.BenchError, match="nowhere.obj"):
+        suite._load(str(tiny_mesh.parent / "nowhere.obj"))
 
 
 def test_absent_device_is_named(capsys):
@@ -254,14 +268,14 @@ def test_trimesh_peer_without_rtree_says_not_installed(monkeypatch):
     assert said and "pip install rtree" in said[0]
 
 
-def test_json_writer_keeps_number_arrays_on_one_line(results):
+def test_json_writer_keeps_number_arrays_on_one_line(results, quick_study_structures):
     """benchmarks.common.dumps: the same JSON as json.dumps, each heat-map row and list of
     repeats on one line."""
     from benchmarks.common import dumps
 
     text = dumps(results)
     assert json.loads(text) == json.loads(json.dumps(results))
-    (hm,) = _records(results, "heatmap", structure=STRUCTURES[0])
+    (hm,) = _records(results, "heatmap", structure=quick_study_structures[0])
     assert len(text.splitlines()) < len(json.dumps(results, indent=2).splitlines()) / 4
     assert json.dumps(hm["steps"][0]) in text  # "[a, b, ...]" on one line
 

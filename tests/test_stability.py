@@ -51,15 +51,32 @@ def test_oracle_agrees_with_jrt_brute_force_on_clean_rays():
     assert np.isfinite(t64).sum() == 300
 
 
-# --- Case 1 -----------------------------------------------------------------------------------
+# --- Cases 1 to 6 at the quick size: the quick study's record ------------------------------
 
-def test_case1_watertight_has_no_cracks_under_any_structure():
-    pairs = [("watertight", s) for s in accel.names()] + [
-        (k, "brute") for k in KERNELS if k != "watertight"]
-    out = stability.case1(mesh="camel-19k", per_family=120, pairs=pairs)
+
+@pytest.fixture(scope="module")
+def quick_cases(quick_study):
+    """The case bodies of the quick study's ``stability.json`` (``jrt stability --size
+    quick``, run once per test session by ``conftest.quick_study``), by case number."""
+    import json
+
+    doc = json.loads((quick_study[0] / "stability.json").read_text())
+    assert doc["size"] == "quick"
+    cases = {int(c): body for c, body in doc["cases"].items()}
+    assert not [c for c, body in cases.items() if "error" in body]
+    return cases
+
+
+def _pairs(records):
+    return {(r["kernel"], r["structure"]) for r in records}
+
+
+def test_case1_watertight_has_no_cracks_under_any_structure(quick_cases):
+    out = quick_cases[1]
     records = out["records"]
-    assert len(records) == len(pairs)
-    assert out["parameters"]["rays"] > 400
+    assert _pairs(records) == {("watertight", s) for s in accel.names(engine=True)} | {
+        (k, "brute") for k in KERNELS}
+    assert out["parameters"]["rays"] > 400 and out["parameters"]["mesh"] == "camel-19k"
     for r in _by(records, kernel="watertight"):
         assert r["cracks"] == 0, r
         assert r["false_hits"] == 0, r
@@ -74,9 +91,9 @@ def test_case1_watertight_has_no_cracks_under_any_structure():
 
 # --- Case 2 -----------------------------------------------------------------------------------
 
-def test_case2_grazing_rays():
-    pairs = [(k, "brute") for k in KERNELS] + [("watertight", "bvh")]
-    out = stability.case2(per_angle=40, pairs=pairs)
+def test_case2_grazing_rays(quick_cases):
+    out = quick_cases[2]
+    assert _pairs(out["records"]) >= {(k, "brute") for k in KERNELS} | {("watertight", "bvh")}
     for r in out["records"]:
         assert r["nan"] == 0, r
         assert r["mismatches_vs_brute"] in (0, None), r
@@ -92,11 +109,10 @@ def test_case2_grazing_rays():
 
 # --- Case 3 -----------------------------------------------------------------------------------
 
-def test_case3_slivers_and_degenerate_triangles():
-    pairs = [(k, "brute") for k in KERNELS] + [("watertight", "bvh")]
-    out = stability.case3(mesh="camel", per_triangle=2, incoherent_rays=0, libigl_sample=0,
-                          pairs=pairs)
-    assert out["parameters"]["slivers"] == 273
+def test_case3_slivers_and_degenerate_triangles(quick_cases):
+    out = quick_cases[3]
+    assert _pairs(out["records"]) >= {(k, "brute") for k in KERNELS} | {("watertight", "bvh")}
+    assert out["parameters"]["mesh"] == "camel" and out["parameters"]["slivers"] == 273
     slivers = _by(out["records"], ray_set="slivers")
     for r in _by(slivers, kernel="watertight"):
         assert r["cracks"] == 0 and r["false_hits"] == 0, r
@@ -104,6 +120,7 @@ def test_case3_slivers_and_degenerate_triangles():
     assert _by(slivers, kernel="libigl_like_f64")[0]["cracks_on_slivers"] > 0
     for r in out["records"]:
         assert r["nan"] == 0, r
+    assert out["synthetic"]
     for row in out["synthetic"]:
         for kernel, cell in row.items():
             if not isinstance(cell, dict):
@@ -117,9 +134,9 @@ def test_case3_slivers_and_degenerate_triangles():
 
 # --- Cases 4 and 5 ----------------------------------------------------------------------------
 
-def test_case4_offsets_prevent_self_intersection():
-    pairs = [("watertight", "bvh"), ("moller_trumbore", "brute")]
-    out = stability.case4(mesh="camel-19k", rays=256, pairs=pairs)
+def test_case4_offsets_prevent_self_intersection(quick_cases):
+    out = quick_cases[4]
+    assert _pairs(out["records"]) >= {("watertight", "bvh"), ("moller_trumbore", "brute")}
     for r in out["records"]:
         assert r["hits"] > 50
         assert r["nan"] == 0
@@ -129,14 +146,14 @@ def test_case4_offsets_prevent_self_intersection():
     assert _by(out["records"], kernel="moller_trumbore")[0]["self_hits"]["none"] > 0
 
 
-def test_case5_pbrt_offset_has_no_self_hits_across_scale_and_offset():
-    out = stability.case5(mesh="camel-19k", rays=128, scales=(1e-6, 1e-3, 1e3, 1e6),
-                          shifts=(1.0, 1e3, 1e5, 1e7), pairs=[("watertight", "brute")],
-                          random_triangles=200, directions=8, aimed=256)
-    (r,) = out["records"]
+def test_case5_pbrt_offset_has_no_self_hits_across_scale_and_offset(quick_cases):
+    out = quick_cases[5]
+    params = out["parameters"]
+    assert {1e-6, 1e6} <= set(params["scales"]) and {1.0, 1e7} <= set(params["shifts"])
+    (r,) = _by(out["records"], kernel="watertight", structure="brute")
     assert r["self_hits"]["pbrt"] == 0, r["self_hits"]
     assert r["nan"] == 0
-    assert len(r["sweep"]) == 8
+    assert len(r["sweep"]) == len(params["scales"]) + len(params["shifts"])
     # A fixed epsilon fails somewhere in the sweep (at scale 1e6 at least).
     assert r["self_hits"]["fixed"] > 0
     rand = out["random_triangles"]
@@ -170,10 +187,10 @@ def test_case5_builds_anywhere_record():
 
 # --- Case 6 -----------------------------------------------------------------------------------
 
-def test_case6_axis_parallel_rays_on_planes():
-    pairs = [(k, "brute") for k in KERNELS] + [("watertight", s)
-                                                for s in ("kdtree", "octree", "grid")]
-    out = stability.case6(rays=600, pairs=pairs)
+def test_case6_axis_parallel_rays_on_planes(quick_cases):
+    out = quick_cases[6]
+    assert _pairs(out["records"]) >= {(k, "brute") for k in KERNELS} | {
+        ("watertight", s) for s in ("kdtree", "octree", "grid")}
     for r in out["records"]:
         assert r["nan"] == 0, r
         assert r["mismatches_vs_brute"] == 0, r
@@ -192,9 +209,10 @@ def test_case7_interface_optics():
     assert len(tir) == 12 and all(not c["tir_below"] and c["tir_above"] for c in tir)
 
 
-def test_case7_glass_camel_traps_light_without_leaks():
-    g = stability.glass_trapping("camel-19k", "watertight", "bvh", rays=8, cap=60)
-    assert g["rays"] == 8
+def test_case7_glass_camel_traps_light_without_leaks(quick_cases):
+    (g,) = [r for r in quick_cases[7]["records"] if r["check"].startswith("glass camel")]
+    assert (g["kernel"], g["structure"]) == ("watertight", "bvh")
+    assert g["rays"] == quick_cases[7]["parameters"]["rays"] >= 8
     assert g["leaks"] == 0 and g["wrong_side"] == 0 and g["nan"] == 0, g
     assert g["bounces_max"] >= 3 and g["tir_share"] > 0
 
@@ -226,12 +244,12 @@ def test_case8_closest_hit_rejects_nan_and_infinite_rays():
 
 # --- Case 9 -----------------------------------------------------------------------------------
 
-def test_case9_stack_overflow_is_reported():
-    """A 54-deep BVH: an 8-entry stack overflows (StackOverflowError, in a subprocess so
-    that a spinning traversal cannot hang the tests), the default 64 answers."""
-    res = stability.stack_probe("chain", "bvh", (8, 64), rays=4, lanes=16, timeout=240,
-                                status=False)
-    assert "error" not in res, res
+def test_case9_stack_overflow_is_reported(quick_cases):
+    """A deep chain of layers (a BVH deeper than 8): an 8-entry stack overflows
+    (StackOverflowError, in a subprocess so that a spinning traversal cannot hang the
+    suite), the default 64 answers."""
+    (res,) = [r for r in quick_cases[9]["records"] if r["check"].startswith("deep chain")]
+    assert res["structure"] == "bvh" and "error" not in res, res
     assert res["depth"] > 8
     assert res["sizes"]["8"]["outcome"] == "StackOverflowError"
     assert res["sizes"]["64"]["outcome"] == "ok"
