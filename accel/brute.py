@@ -32,5 +32,5 @@ def build(vertices: np.ndarray, faces: np.ndarray) -> Structure:
 
 KIND = StructureKind(
     name="brute", build=build, arrays=frozenset({"triangles", "triangle_ids"}),
-    traversal=None, planes=None,
+    traversal=None, planes=None, refit="jrt.refitting:refit_brute",
     summary="every ray against every triangle: the baseline the other structures must equal")

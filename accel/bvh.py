@@ -571,5 +571,5 @@ KIND = StructureKind(
     name="bvh", build=build,
     arrays=frozenset({"nodes", "triangles", "triangle_ids", "frame"}),
     layout=frozenset({"leaf_bits", "width"}), traversal="jrt.bvh:traversal", planes=stored_planes,
-    rows=frozenset({"nodes", "triangles", "triangle_ids"}),
+    rows=frozenset({"nodes", "triangles", "triangle_ids"}), refit="jrt.refitting:refit_bvh",
     summary="bounding volume hierarchy: SAH-binned, 2-, 4- or 8-wide nodes")

@@ -54,6 +54,12 @@ class StructureKind:
             count: ``jrt`` may pad them at the end, where no index points, so that
             structures of similar sizes share one compiled traversal
             (``jrt.trace.padded_structure``). Empty (the default): nothing is padded.
+        refit: ``refit(structure, triangles) -> Structure``: the structure for new
+            triangle rows (the same faces, moved; ``triangles`` float32 [T, 3, 3] in the
+            structure's row order), a pure JAX function (``jrt.refit`` calls it): a
+            ``"module:function"`` name or the function. ``None`` (the default) when the
+            kind cannot be refit exactly (its cells or planes were chosen for the old
+            positions): ``jrt.refit`` then says to rebuild it with ``accel.build``.
     """
 
     name: str
@@ -64,6 +70,7 @@ class StructureKind:
     planes: Callable[[Structure], list[np.ndarray]] | None = None
     summary: str = ""
     rows: frozenset[str] = frozenset()
+    refit: str | Callable | None = None
 
     def __post_init__(self):
         if not (isinstance(self.name, str) and self.name.isidentifier()):
@@ -74,9 +81,11 @@ class StructureKind:
         if not needed <= set(self.arrays):
             raise ValueError(f"kind {self.name!r}: arrays must include {sorted(needed)} (the "
                              f"triangles every query reads), got {sorted(self.arrays)}")
-        if isinstance(self.traversal, str) and ":" not in self.traversal:
-            raise ValueError(f"kind {self.name!r}: traversal {self.traversal!r} must be "
-                             "'module:function' or a function")
+        for field in ("traversal", "refit"):
+            value = getattr(self, field)
+            if isinstance(value, str) and ":" not in value:
+                raise ValueError(f"kind {self.name!r}: {field} {value!r} must be "
+                                 "'module:function' or a function")
         object.__setattr__(self, "arrays", frozenset(self.arrays))
         object.__setattr__(self, "layout", frozenset(self.layout))
         object.__setattr__(self, "rows", frozenset(self.rows))
@@ -95,8 +104,20 @@ class StructureKind:
             return self.traversal
         if self.traversal is None:
             raise ValueError(f"structure kind {self.name!r} has no engine traversal")
-        module, _, function = self.traversal.partition(":")
-        return getattr(importlib.import_module(module), function)
+        return _named_function(self.traversal)
+
+    def refit_function(self) -> Callable | None:
+        """The function ``refit(structure, triangles)`` (imported on first use), or None
+        when the kind cannot be refit."""
+        return None if self.refit is None else _named_function(self.refit)
+
+
+def _named_function(name: str | Callable) -> Callable:
+    """A ``"module:function"`` name's function (imported), or the function itself."""
+    if callable(name):
+        return name
+    module, _, function = name.partition(":")
+    return getattr(importlib.import_module(module), function)
 
 
 _KINDS: dict[str, StructureKind] = {}

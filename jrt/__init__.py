@@ -15,6 +15,7 @@ from jrt.hits import Hits
 from jrt.kernels import KERNELS, moller_trumbore, plane_barycentric, watertight
 from jrt.mesh import Mesh, MeshError, MeshWarning, load_mesh, mesh_from_arrays
 from jrt.normals import corner_normals
+from jrt.refitting import refit
 from jrt.trace import closest_hit, occluded
 
 tune_malloc = _xla.tune_malloc
@@ -52,6 +53,7 @@ __all__ = [
     "moller_trumbore",
     "occluded",
     "plane_barycentric",
+    "refit",
     "StackOverflowError",
     "TraversalError",
     "tune_malloc",

@@ -58,6 +58,7 @@ from accel.structure import Structure
 from jrt import brute, engine
 from jrt import structure as _structure  # noqa: F401  (registers Structure as a pytree)
 from jrt.engine import Counters, StackOverflowError, TraversalError
+from jrt.hit_derivatives import hit_tangents
 from jrt.hits import Hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
 
@@ -389,6 +390,56 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
     return (out, count, status) if status_out else (out, count)
 
 
+def _integer_zeros(tree):
+    """The tangent of integer or boolean outputs: float0 zeros of their shapes."""
+    return jax.tree.map(lambda a: np.zeros(np.shape(a), jax.dtypes.float0), tree)
+
+
+@functools.cache
+def _differentiable_query(kernel, any_hit, counters, lanes, stack_size):
+    """:func:`_query` as a ``jax.custom_jvp`` function of ``(structure, origins,
+    directions, tmax)`` (checked rays): JAX never differentiates the traversal (its loops
+    and the choice of a triangle have no useful derivative). The rule runs the query on
+    the primal values and attaches the closed-form tangents of the winner's ``t, u, v``
+    (:func:`jrt.hit_derivatives.hit_tangents`: with respect to the origins, the
+    directions and the structure's ``triangles`` rows; exactly 0 for a miss). The
+    triangle index, the counters and ``occluded``'s mask are piecewise constant: float0
+    tangents, so a ``grad`` through them is 0 and never NaN. One function per set of
+    options (cached), as :func:`_flat_query`."""
+    options = dict(kernel=kernel, any_hit=any_hit, counters=counters, lanes=lanes,
+                   stack_size=stack_size)
+
+    def primal(structure, origins, directions, tmax):
+        return _query(structure, origins, directions, tmax, **options)
+
+    query = jax.custom_jvp(primal)
+
+    @query.defjvp
+    def _rule(primals, tangents):
+        structure, origins, directions, _ = primals
+        out, count = primal(*primals)
+        if any_hit:
+            return (out, count), _integer_zeros((out, count))
+        structure_dot, origins_dot, directions_dot, _ = tangents
+        t_dot, u_dot, v_dot = hit_tangents(
+            structure["triangles"], structure["triangle_ids"], origins, directions,
+            out.triangle, structure_dot["triangles"], origins_dot, directions_dot)
+        out_dot = Hits(t=t_dot, triangle=_integer_zeros(out.triangle), u=u_dot, v=v_dot)
+        return (out, count), (out_dot, _integer_zeros(count))
+
+    return query
+
+
+def _query_any(structure, origins, directions, tmax, **options):
+    """:func:`_query`, through :func:`_differentiable_query` when anything is traced (a
+    ``jit``, ``vmap`` or derivative around the call); concrete calls, which nothing can
+    differentiate, go straight to it."""
+    if not _is_traced(origins, directions, tmax, *jax.tree.leaves(structure)):
+        return _query(structure, origins, directions, tmax, **options)
+    origins, directions, tmax = _check_rays(origins, directions, tmax)
+    return _differentiable_query(**options)(structure, origins, directions, tmax)
+
+
 def query_status(structure: Structure, origins: Float[Array, "n 3"],
                  directions: Float[Array, "n 3"], *, tmax, kernel: str, any_hit: bool,
                  stack_size: int = engine.DEFAULT_STACK_SIZE):
@@ -454,8 +505,9 @@ def closest_hit(
     structure falls back to one call per item in turn (``lax.map``). See the module's
     docstring.
     """
-    hits, count = _query(structure, origins, directions, tmax, kernel=kernel, any_hit=False,
-                         counters=counters, lanes=lanes, stack_size=stack_size)
+    hits, count = _query_any(structure, origins, directions, tmax, kernel=kernel,
+                             any_hit=False, counters=counters, lanes=lanes,
+                             stack_size=stack_size)
     return (hits, count) if counters else hits
 
 
@@ -476,8 +528,9 @@ def occluded(
     natively as :func:`closest_hit` does (one engine call on all the items' rays; a
     batched structure: one call per item, ``lax.map``).
     """
-    mask, count = _query(structure, origins, directions, tmax, kernel=kernel, any_hit=True,
-                         counters=counters, lanes=lanes, stack_size=stack_size)
+    mask, count = _query_any(structure, origins, directions, tmax, kernel=kernel,
+                             any_hit=True, counters=counters, lanes=lanes,
+                             stack_size=stack_size)
     return (mask, count) if counters else mask
 
 
