@@ -56,7 +56,10 @@ def rows_of_faces(triangle_ids: Int[Array, " rows"], faces: Int[Array, "*n"]) ->
     """The row of ``triangle_ids`` that holds each face index in ``faces`` (0 where a
     face is not there, a miss's -1 say): a structure stores each face once, in its own
     row order (``accel.structure.Structure``)."""
-    triangle_ids = jnp.asarray(triangle_ids)
+    # A structure closed over by a caller's jit is a constant there: the barrier keeps XLA
+    # from sorting its rows at compile time (seconds for the camel), and lets it hoist the
+    # sort out of a loop around the query instead.
+    triangle_ids = jax.lax.optimization_barrier(jnp.asarray(triangle_ids))
     order = jnp.argsort(triangle_ids)
     ordered = triangle_ids[order]
     position = jnp.clip(jnp.searchsorted(ordered, faces), 0, triangle_ids.shape[0] - 1)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
@@ -105,7 +106,20 @@ def offset_ray_origin(point: Float[Array, "*batch 3"], error: Float[Array, "*bat
     offset = jnp.where((dot(direction, n) < 0)[..., None], -offset, offset)
     moved = point + offset
     away = jnp.where(offset > 0, jnp.inf, jnp.where(offset < 0, -jnp.inf, moved))
-    return jnp.nextafter(moved, away)
+    return _next_float(moved, away)
+
+
+@jax.custom_jvp
+def _next_float(x, toward):
+    """``nextafter(x, toward)``, whose derivative is taken as 1 in ``x`` (a one-ulp step
+    of rounding: the point it moves is the point it was, for a derivative)."""
+    return jnp.nextafter(x, toward)
+
+
+@_next_float.defjvp
+def _next_float_jvp(primals, tangents):
+    x, toward = primals
+    return jnp.nextafter(x, toward), tangents[0]
 
 
 __all__ = ["SurfaceInteraction", "face_forward", "normalise", "offset_ray_origin",

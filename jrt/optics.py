@@ -55,9 +55,28 @@ def _dot(a: Vec, b: Vec) -> Scalar:
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
+@jax.custom_jvp
 def _safe_sqrt(x):
-    """sqrt(max(x, 0)): never NaN, also for a radicand that rounding pushed below zero."""
+    """sqrt(max(x, 0)): never NaN, also for a radicand that rounding pushed below zero.
+
+    Its derivative, 1 / (2 sqrt(x)), is infinite at 0 (the critical angle, where R has an
+    infinite slope) and 0 below: it is bounded by :data:`MAX_SQRT_SLOPE`, so that the
+    tangent of a ray at the critical angle stays finite and a reverse-mode gradient never
+    multiplies an infinity by a zero (which would be NaN)."""
     return jnp.sqrt(jnp.maximum(x, 0))
+
+
+#: The largest derivative of :func:`_safe_sqrt` (that of sqrt at x = 2.5e-13): a
+#: radicand within 2^-42 of the critical angle's zero, of no geometric meaning in float32.
+MAX_SQRT_SLOPE = 1e6
+
+
+@_safe_sqrt.defjvp
+def _safe_sqrt_jvp(primals, tangents):
+    (x,), (x_dot,) = primals, tangents
+    root = jnp.sqrt(jnp.maximum(x, 0))
+    slope = jnp.where(x > 0, jnp.minimum(0.5 / jnp.maximum(root, 1e-30), MAX_SQRT_SLOPE), 0)
+    return root, slope * x_dot
 
 
 def _cos_transmitted(cos_i, n1, n2):

@@ -396,18 +396,18 @@ def _integer_zeros(tree):
 
 
 @functools.cache
-def _differentiable_query(kernel, any_hit, counters, lanes, stack_size):
+def _differentiable_query(kernel, any_hit, counters, lanes, stack_size, status_out=False):
     """:func:`_query` as a ``jax.custom_jvp`` function of ``(structure, origins,
     directions, tmax)`` (checked rays): JAX never differentiates the traversal (its loops
     and the choice of a triangle have no useful derivative). The rule runs the query on
     the primal values and attaches the closed-form tangents of the winner's ``t, u, v``
     (:func:`jrt.hit_derivatives.hit_tangents`: with respect to the origins, the
     directions and the structure's ``triangles`` rows; exactly 0 for a miss). The
-    triangle index, the counters and ``occluded``'s mask are piecewise constant: float0
-    tangents, so a ``grad`` through them is 0 and never NaN. One function per set of
-    options (cached), as :func:`_flat_query`."""
+    triangle index, the counters, the status word and ``occluded``'s mask are piecewise
+    constant: float0 tangents, so a ``grad`` through them is 0 and never NaN. One
+    function per set of options (cached), as :func:`_flat_query`."""
     options = dict(kernel=kernel, any_hit=any_hit, counters=counters, lanes=lanes,
-                   stack_size=stack_size)
+                   stack_size=stack_size, status_out=status_out)
 
     def primal(structure, origins, directions, tmax):
         return _query(structure, origins, directions, tmax, **options)
@@ -417,15 +417,16 @@ def _differentiable_query(kernel, any_hit, counters, lanes, stack_size):
     @query.defjvp
     def _rule(primals, tangents):
         structure, origins, directions, _ = primals
-        out, count = primal(*primals)
+        answers = primal(*primals)
+        out, rest = answers[0], answers[1:]
         if any_hit:
-            return (out, count), _integer_zeros((out, count))
+            return answers, _integer_zeros(answers)
         structure_dot, origins_dot, directions_dot, _ = tangents
         t_dot, u_dot, v_dot = hit_tangents(
             structure["triangles"], structure["triangle_ids"], origins, directions,
             out.triangle, structure_dot["triangles"], origins_dot, directions_dot)
         out_dot = Hits(t=t_dot, triangle=_integer_zeros(out.triangle), u=u_dot, v=v_dot)
-        return (out, count), (out_dot, _integer_zeros(count))
+        return answers, (out_dot, *_integer_zeros(rest))
 
     return query
 
@@ -449,9 +450,9 @@ def query_status(structure: Structure, origins: Float[Array, "n 3"],
     the words and raises once, outside, with :func:`raise_on_status`. No host callback
     sits in its program, so JAX's persistent compilation cache can keep it (a program
     with a callback is never cached)."""
-    out, _, status = _query(structure, origins, directions, tmax, kernel=kernel,
-                            any_hit=any_hit, counters=False, lanes=None,
-                            stack_size=stack_size, status_out=True)
+    out, _, status = _query_any(structure, origins, directions, tmax, kernel=kernel,
+                                any_hit=any_hit, counters=False, lanes=None,
+                                stack_size=stack_size, status_out=True)
     return out, status
 
 

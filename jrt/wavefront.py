@@ -264,8 +264,15 @@ def trace_tree(
         carry = step(carry, 0, last=depth == 1,
                      static=dataclasses.replace(static, bundle=True))
     step = functools.partial(step, static=static)
-    carry = jax.lax.fori_loop(jnp.int32(first_level), depth,
-                              lambda level, c: step(c, level, last=level == depth - 1), carry)
+    if static.differentiable:  # every level slot, the ones past the depth skipped
+        carry = jax.lax.fori_loop(
+            first_level, levels, lambda level, c: jax.lax.cond(
+                level < depth, lambda c: step(c, level, last=level == depth - 1),
+                lambda c: c, c), carry)
+    else:
+        carry = jax.lax.fori_loop(jnp.int32(first_level), depth,
+                                  lambda level, c: step(c, level, last=level == depth - 1),
+                                  carry)
     stats = TreeStats(rays=carry.traced, demand=carry.demand, overflow_weight=carry.overflow,
                       shadow_rays=carry.shadow, dropped_weight=carry.dropped,
                       truncated_weight=carry.truncated, status=carry.status)
@@ -302,6 +309,9 @@ def _shade_level(structure, scene: SceneArrays, rays: LevelRays, key, static: _S
             shadow_rays=out.shadow_rays + part.shadow_rays,
             status=out.status | part.status)
 
+    if static.differentiable:  # every chunk, the empty ones skipped (see trace_tree)
+        return jax.lax.fori_loop(0, n // chunk, lambda i, out: jax.lax.cond(
+            i < live, lambda out: body(i, out), lambda out: out, out), out)
     return jax.lax.fori_loop(jnp.int32(0), live, body, out)
 
 
@@ -446,8 +456,10 @@ class Renderer:
 
     def __init__(self, setup: RenderSetup, params, *, width: int, height: int, depth: int,
                  spp: int, mode: str, threshold: float, capacities: tuple[int, ...],
-                 key: Array, bundles: bool, later_guess: int = _MIN_LATER):
+                 key: Array, bundles: bool, later_guess: int = _MIN_LATER,
+                 differentiable: bool = False):
         self.setup = setup
+        self.differentiable = differentiable
         self.params = params
         self.mode = mode
         self.depth = depth
@@ -487,7 +499,9 @@ class Renderer:
     def shape(self) -> _Shape:
         """The static part of the program, at the capacities of now."""
         width, height, spp = self._size
-        return _Shape(static=_static(self.setup, self.mode), first=self.capacities[0],
+        static = dataclasses.replace(_static(self.setup, self.mode),
+                                     differentiable=self.differentiable)
+        return _Shape(static=static, first=self.capacities[0],
                       later=max(self.capacities[1:], default=self._later_guess),
                       levels=level_slots(self.depth), width=width, height=height, spp=spp,
                       subpixel=self.mode == "tree", bundles=self._bundles,
@@ -593,6 +607,7 @@ def renderer(
     threshold: float | None = None,
     capacities: tuple[int, ...] | None = None,
     key: Array | None = None,
+    differentiable: bool = False,
 ) -> tuple[Renderer, dict]:
     """A scene's Whitted render as a pure function of its parameters::
 
@@ -622,6 +637,10 @@ def renderer(
         capacities: rays per level (``max_depth`` sizes); default a guess from the
             scene's materials, grown on the first render that overflows.
         key: ``jax.random`` key (the sampled mode's branch choices); default PRNGKey(0).
+        differentiable: compile for ``jax.grad`` too (reverse mode): the loops over the
+            tree's levels and a level's chunks get static lengths (empty ones skipped),
+            which JAX can run backwards. Forward mode (``jax.jvp``, ``jax.jacfwd``) works
+            either way. See ``docs/gradients.md`` for what the derivative is.
     """
     setup, depth, threshold = render_arguments(
         scene, max_depth=max_depth, samples=samples, mode=mode, spp=spp, features=None,
@@ -641,7 +660,7 @@ def renderer(
     render = Renderer(setup, params, width=camera.width, height=camera.height, depth=depth,
                       spp=spp, mode=mode, threshold=threshold, capacities=capacities,
                       key=jax.random.PRNGKey(0) if key is None else key, bundles=bundles,
-                      later_guess=guess[1])
+                      later_guess=guess[1], differentiable=differentiable)
     return render, params
 
 

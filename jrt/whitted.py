@@ -385,6 +385,11 @@ class _Static:
     # Spectral mode only: the rays are bundles carrying every wavelength sample (weights
     # [N, C]); their children are split, one ray per wavelength sample (weights [N, 1]).
     bundle: bool = False
+    # Loops of static length (jrt.wavefront.renderer(..., differentiable=True)): every
+    # level slot and every chunk of a level in a scan, the empty ones skipped by a cond,
+    # so that reverse mode (jax.grad) can run them backwards; JAX cannot reverse a loop
+    # whose trip count is a value.
+    differentiable: bool = False
 
 
 def _pick(table, channels, per_ray: bool):
@@ -546,6 +551,10 @@ def _children(static: _Static, scene: SceneArrays, directions, ns, ng, entering,
             n_in = optics.cauchy(a, bc, scene.wavelengths[channels])  # Cauchy, seed §3
         else:
             n_in = a  # no dispersion: B = 0
+        # Other materials have no index (0 in the table): 1 there, whose optics are
+        # computed and then discarded, so that no 1/0 enters a derivative (0 * inf would
+        # make reverse mode NaN; the glass rays' values are unchanged).
+        n_in = jnp.where(is_glass, n_in, 1.0)
         n1, n2 = optics.interface_indices(entering, n_in, 1.0)
         t_s, tir_s = optics.refract(directions, ns, n1, n2)  # seed eq. (1)
         use_s = use_s & (tir_s | (dot(t_s, ng) < 0))
