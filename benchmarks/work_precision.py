@@ -21,7 +21,7 @@ Studies (each a ``study``, one diagram in ``reports.report``; ``series`` joins p
 * ``wavelength samples``: 4, 8, 16, 32 (quick: 4, 8, 16);
 * ``pruning threshold``: 1e-1, 1e-2, 1e-3, 1e-4 (quick: 1e-1, 1e-3);
 * ``exact tree vs sampled branches``: the tree at the default depth, and ``mode="sampled"``
-  at 1, 4, 16 paths per pixel (quick: 1, 4);
+  at 1, 4, 16 paths per pixel (quick: 1);
 * ``Fresnel exact vs Schlick``: both at the scene's defaults;
 * ``kernel``: ``plane_barycentric``, ``moller_trumbore``, ``watertight``, float32 (jrt's
   meshes and kernels are float32; there is no float64 path without changing the library, so
@@ -58,7 +58,7 @@ KERNELS = ("plane_barycentric", "moller_trumbore", "watertight")
 DEPTHS = ((1, 2, 3, 4, 5, 6, 7, 8), (1, 2, 4))
 SAMPLES = ((4, 8, 16, 32), (4, 16))
 THRESHOLDS = ((1e-1, 1e-2, 1e-3, 1e-4), (1e-1, 1e-3))
-SPPS = ((1, 4, 16), (1, 4))
+SPPS = ((1, 4, 16), (1,))
 REFERENCE_SAMPLES = (64, 32)
 REFERENCE_DEPTH = 10
 #: Image size (full, quick).
