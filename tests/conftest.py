@@ -158,9 +158,9 @@ def brute_hits(camel_brute, camel_rays):
     return get
 
 
-#: The quick study's structures and command line (after ``jrt``): two structures and brute
+#: The quick study's structures and command line (after ``jrt``): one structure and brute
 #: force keep it to a few minutes; every structure has its own tests in the suites'.
-QUICK_STUDY_STRUCTURES = ("bvh", "grid")
+QUICK_STUDY_STRUCTURES = ("bvh",)
 QUICK_STUDY = ("study", "--quick", "--structures", ",".join(QUICK_STUDY_STRUCTURES))
 
 
@@ -172,7 +172,7 @@ def quick_study_structures():
 
 @pytest.fixture(scope="session")
 def quick_study():
-    """``jrt study --quick --structures bvh,grid``, as a user runs it (a process of its own),
+    """``jrt study --quick --structures bvh``, as a user runs it (a process of its own),
     once per test session: ``(folder, printed)``, its output folder and what it printed.
 
     The xdist workers share it through the session folder: the first to ask runs it under
