@@ -38,13 +38,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def moved(vertices: np.ndarray, diagonal: float, seed: int) -> np.ndarray:
+def moved(vertices: np.ndarray, diagonal: float, seed: int, shift: float = 0.0,
+          scale: float = 1.0) -> np.ndarray:
+    """float32 vertices jittered by 1 % of ``diagonal``, turned about the vertical axis
+    by a random angle, then scaled by ``scale`` and shifted by ``shift``."""
     rng = np.random.default_rng(seed)
     angle = rng.uniform(0, 2 * np.pi)
     c, s = np.cos(angle), np.sin(angle)
     rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
     jitter = rng.normal(0, 0.01 * diagonal, vertices.shape)
-    return ((vertices + jitter) @ rotation.T).astype(np.float32)
+    return ((vertices + jitter) @ rotation.T * scale + shift).astype(np.float32)
 
 
 def run(args) -> dict:

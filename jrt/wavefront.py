@@ -264,15 +264,8 @@ def trace_tree(
         carry = step(carry, 0, last=depth == 1,
                      static=dataclasses.replace(static, bundle=True))
     step = functools.partial(step, static=static)
-    if static.differentiable:  # every level slot, the ones past the depth skipped
-        carry = jax.lax.fori_loop(
-            first_level, levels, lambda level, c: jax.lax.cond(
-                level < depth, lambda c: step(c, level, last=level == depth - 1),
-                lambda c: c, c), carry)
-    else:
-        carry = jax.lax.fori_loop(jnp.int32(first_level), depth,
-                                  lambda level, c: step(c, level, last=level == depth - 1),
-                                  carry)
+    carry = _loop(first_level, depth, levels, lambda level, c: step(
+        c, level, last=level == depth - 1), carry, static.differentiable)
     stats = TreeStats(rays=carry.traced, demand=carry.demand, overflow_weight=carry.overflow,
                       shadow_rays=carry.shadow, dropped_weight=carry.dropped,
                       truncated_weight=carry.truncated, status=carry.status)
@@ -309,10 +302,18 @@ def _shade_level(structure, scene: SceneArrays, rays: LevelRays, key, static: _S
             shadow_rays=out.shadow_rays + part.shadow_rays,
             status=out.status | part.status)
 
-    if static.differentiable:  # every chunk, the empty ones skipped (see trace_tree)
-        return jax.lax.fori_loop(0, n // chunk, lambda i, out: jax.lax.cond(
-            i < live, lambda out: body(i, out), lambda out: out, out), out)
-    return jax.lax.fori_loop(jnp.int32(0), live, body, out)
+    return _loop(0, live, n // chunk, body, out, static.differentiable)
+
+
+def _loop(lower: int, upper, most: int, body, init, differentiable: bool):
+    """``lax.fori_loop(lower, upper, body, init)`` for a traced ``upper`` (at most
+    ``most``). Differentiable: ``most - lower`` iterations, those from ``upper`` on
+    skipped by a ``lax.cond``, since JAX cannot run backwards a loop whose trip count
+    is a value (``renderer(..., differentiable=True)``)."""
+    if not differentiable:
+        return jax.lax.fori_loop(jnp.int32(lower), upper, body, init)
+    return jax.lax.fori_loop(lower, most, lambda i, carry: jax.lax.cond(
+        i < upper, functools.partial(body, i), lambda carry: carry, carry), init)
 
 
 @jax.custom_batching.custom_vmap

@@ -16,6 +16,7 @@ import pytest
 import accel
 import jrt
 from accel.bvh import EMPTY_SLOT, child_boxes, child_references
+from benchmarks.refit import moved
 from jrt.raysets import incoherent_set
 from jrt.trace import as_numpy
 
@@ -30,16 +31,6 @@ def camel(camel19k):
 @pytest.fixture(scope="module")
 def bvh(camel):
     return accel.build("bvh", camel[0], camel[1])
-
-
-def moved(vertices, diagonal, seed, shift=0.0, scale=1.0):
-    """The vertices jittered by 1 % of the diagonal, rotated, scaled and shifted."""
-    rng = np.random.default_rng(seed)
-    angle = rng.uniform(0, 2 * np.pi)
-    c, s = np.cos(angle), np.sin(angle)
-    rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    jitter = rng.normal(0, 0.01 * diagonal, vertices.shape)
-    return ((vertices + jitter) @ rotation.T * scale + shift).astype(np.float32)
 
 
 def subtree_boxes(structure):
