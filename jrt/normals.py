@@ -34,14 +34,21 @@ rule only keeps every output a unit vector, never NaN.
 Cost: ``sum over positions of valence**2`` face pairs (about six per corner on a closed
 mesh; a fan of k triangles around one vertex adds k**2), processed in bounded batches on the
 host (NumPy, float64), once per mesh.
+
+**Moving vertices.** Which faces smooth into a corner is decided by the crease test, a
+piecewise constant function of the vertices. :func:`smoothing_pairs` records those
+decisions; :func:`corner_normals_from_pairs` evaluates the same sums for any vertex
+positions in JAX (float32), so that a renderer whose vertices are parameters shades the
+moved mesh and differentiates its normals, the crease decisions held fixed.
 """
 
 from __future__ import annotations
 
 import math
 
+import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Float, Int
+from jaxtyping import Array, Float, Int
 
 from accel.geometry import mesh_arrays
 
@@ -91,6 +98,38 @@ def face_geometry(vertices, faces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return unit, np.where(valid[:, None], angle, 0.0), valid
 
 
+def _corner_pairs(vertices, faces, angle: float, unit, valid):
+    """Batches ``(first, last, query, partner, keep)`` of the corner pairs sharing a
+    position, for the corners ``[first, last)`` (corner ``c = 3 f + k``): each query
+    corner with every corner at its position, its own included, and whether the partner's
+    face is smoothed into it (within the crease of the query's face; a degenerate face
+    takes every neighbour). Batches of about ``_PAIRS_PER_BATCH`` pairs bound the memory."""
+    n_corners = 3 * len(faces)
+    cos_t = math.cos(math.radians(angle)) - _COS_SLACK
+    # Corners grouped by position (stable: by face, then corner, in a group).
+    group = merged_corners(vertices, faces).reshape(-1)
+    order = np.argsort(group, kind="stable")
+    size = np.bincount(group)
+    start = np.concatenate([[0], np.cumsum(size)[:-1]])
+    pairs = size[group]  # partners of each corner: every corner at its position
+    ends = np.cumsum(pairs)
+    first = 0
+    while first < n_corners:
+        # The corners [first, last) whose partners fit one batch (at least one corner).
+        base = ends[first - 1] if first else 0
+        last = max(int(np.searchsorted(ends, base + _PAIRS_PER_BATCH, side="right")),
+                   first + 1)
+        count = pairs[first:last]
+        query = np.repeat(np.arange(first, last), count)
+        offset = np.arange(len(query)) - np.repeat(np.cumsum(count) - count, count)
+        partner = order[start[group[query]] + offset]
+        f_query, f_partner = query // 3, partner // 3
+        cos = (unit[f_query] * unit[f_partner]).sum(axis=1)
+        keep = (cos >= cos_t) | (f_query == f_partner) | ~valid[f_query]
+        yield first, last, query, partner, keep
+        first = last
+
+
 def corner_normals(
     vertices: Float[np.ndarray, "v 3"],
     faces: Int[np.ndarray, "f 3"],
@@ -110,35 +149,13 @@ def corner_normals(
     if n_faces == 0:
         return np.zeros((0, 3, 3), np.float32)
     unit, weight, valid = face_geometry(vertices, faces)
-    cos_t = math.cos(math.radians(angle)) - _COS_SLACK
-    # Corners c = 3 f + k, grouped by position (stable: by face, then corner, in a group).
-    group = merged_corners(vertices, faces).reshape(-1)
-    order = np.argsort(group, kind="stable")
-    size = np.bincount(group)
-    start = np.concatenate([[0], np.cumsum(size)[:-1]])
-    pairs = size[group]  # partners of each corner: every corner at its position
-    ends = np.cumsum(pairs)
     flat_weight = weight.reshape(-1)
     total = np.zeros((3 * n_faces, 3))
-    first = 0
-    while first < 3 * n_faces:
-        # The corners [first, last) whose partners fit one batch (at least one corner).
-        base = ends[first - 1] if first else 0
-        last = max(int(np.searchsorted(ends, base + _PAIRS_PER_BATCH, side="right")),
-                   first + 1)
-        count = pairs[first:last]
-        query = np.repeat(np.arange(first, last), count)
-        offset = np.arange(len(query)) - np.repeat(np.cumsum(count) - count, count)
-        partner = order[start[group[query]] + offset]
-        f_query, f_partner = query // 3, partner // 3
-        cos = (unit[f_query] * unit[f_partner]).sum(axis=1)
-        # Within the crease of the corner's face; a degenerate face takes every neighbour.
-        keep = (cos >= cos_t) | (f_query == f_partner) | ~valid[f_query]
+    for first, last, query, partner, keep in _corner_pairs(vertices, faces, angle, unit, valid):
         w = np.where(keep, flat_weight[partner], 0.0)
         for axis in range(3):
             total[first:last, axis] = np.bincount(
-                query - first, weights=w * unit[f_partner, axis], minlength=last - first)
-        first = last
+                query - first, weights=w * unit[partner // 3, axis], minlength=last - first)
     total = total.reshape(n_faces, 3, 3)
     length = np.linalg.norm(total, axis=2, keepdims=True)
     out = total / np.where(length > 0, length, 1.0)
@@ -151,6 +168,58 @@ def corner_normals(
     empty = ~valid[:, None] & (length[..., 0] == 0)
     out = np.where(empty[..., None], np.array([0.0, 0.0, 1.0]), out)
     return out.astype(np.float32)
+
+
+def smoothing_pairs(vertices: Float[np.ndarray, "v 3"], faces: Int[np.ndarray, "f 3"],
+                    crease_angle: float = DEFAULT_CREASE_ANGLE) -> Int[np.ndarray, "2 p"]:
+    """int32 [2, P]: the pairs ``(corner, partner)`` that :func:`corner_normals` sums, the
+    partner's face smoothed into the corner's (corners ``c = 3 f + k``; every corner is
+    its own partner). With them held fixed, :func:`corner_normals_from_pairs` gives the
+    corner normals of moved vertices as a differentiable JAX function: which faces smooth
+    together is piecewise constant in the vertices, as a ray's hit triangle is."""
+    angle = _check_angle(crease_angle)
+    vertices, faces = mesh_arrays(vertices, faces)
+    if len(faces) == 0:
+        return np.zeros((2, 0), np.int32)
+    unit, _, valid = face_geometry(vertices, faces)
+    kept = [np.stack([query[keep], partner[keep]])
+            for _, _, query, partner, keep in _corner_pairs(vertices, faces, angle, unit, valid)]
+    return np.concatenate(kept, axis=1).astype(np.int32)
+
+
+def corner_normals_from_pairs(vertices: Float[Array, "v 3"], faces: Int[Array, "f 3"],
+                              pairs: Int[Array, "2 p"]) -> Float[Array, "f 3 3"]:
+    """float32 [F, 3, 3]: :func:`corner_normals` in JAX, for the smoothing ``pairs`` of
+    :func:`smoothing_pairs` (the faces smoothed together held fixed): the same
+    angle-weighted sums and fallbacks, in float32, differentiable with respect to the
+    vertices. NaN-free: a degenerate face's normal and angles, and a vanishing sum, are
+    masked on their inputs before any division or square root (the "double where")."""
+    p = jnp.asarray(vertices, jnp.float32)[faces]  # [F, 3, 3]
+    cross = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    square = jnp.sum(cross * cross, axis=1)
+    valid = square > 0
+    unit = jnp.where(valid[:, None],
+                     cross / jnp.sqrt(jnp.where(valid, square, 1.0))[:, None], 0.0)
+    e_next, e_prev = p[:, (1, 2, 0)] - p, p[:, (2, 0, 1)] - p
+    sine = jnp.cross(e_next, e_prev)
+    sine = jnp.sum(sine * sine, axis=2)  # > 0 at every corner of a face of non-zero area
+    ok = valid[:, None] & (sine > 0)
+    angle = jnp.where(ok, jnp.arctan2(jnp.sqrt(jnp.where(ok, sine, 1.0)),
+                                      jnp.where(ok, jnp.sum(e_next * e_prev, axis=2), 1.0)),
+                      0.0)
+    corner, partner = pairs[0], pairs[1]
+    total = jnp.zeros((3 * faces.shape[0], 3), jnp.float32).at[corner].add(
+        angle.reshape(-1)[partner][:, None] * unit[partner // 3])
+    total = total.reshape(-1, 3, 3)
+    square = jnp.sum(total * total, axis=2)
+    some = square > 0
+    out = jnp.where(some[..., None],
+                    total / jnp.sqrt(jnp.where(some, square, 1.0))[..., None], 0.0)
+    facing = jnp.sum(out * unit[:, None, :], axis=2)
+    flat = valid[:, None] & (~some | (facing <= 0))
+    out = jnp.where(flat[..., None], unit[:, None, :], out)
+    empty = ~valid[:, None] & ~some
+    return jnp.where(empty[..., None], jnp.float32([0.0, 0.0, 1.0]), out)
 
 
 def crease_edges(vertices: Float[np.ndarray, "v 3"], faces: Int[np.ndarray, "f 3"],
@@ -176,5 +245,5 @@ def crease_edges(vertices: Float[np.ndarray, "v 3"], faces: Int[np.ndarray, "f 3
     return int((dihedral > angle).sum()), int(len(dihedral)), dihedral
 
 
-__all__ = ["DEFAULT_CREASE_ANGLE", "corner_normals", "crease_edges", "face_geometry",
-           "merged_corners"]
+__all__ = ["DEFAULT_CREASE_ANGLE", "corner_normals", "corner_normals_from_pairs",
+           "crease_edges", "face_geometry", "merged_corners", "smoothing_pairs"]

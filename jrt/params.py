@@ -17,6 +17,13 @@ value the scene file sets, under the scene file's own keys, each a float32 ``jnp
     params["lamps"][i]          {"position": [3], "intensity": []}
     params["camera"]            {"eye": [3], "target": [3], "up": [3], "vfov": []}  degrees
     params["settings"]          {"ambient": []}
+    params["geometry"]          {"vertices": [V, 3]}   only when asked (geometry=True)
+
+The vertices (every object's, transformed as the scene places them, then the floor's) are a
+parameter only on request: a render with them rebuilds the structure's boxes
+(:func:`jrt.refit`, brute force and the BVH) and the corner normals
+(:func:`jrt.normals.corner_normals_from_pairs`, the crease decisions of the scene as
+written held fixed) on every call, which a render of fixed geometry should not pay.
 
 Positions are the resolved ones (an ``"auto"`` lamp or camera holds where
 :func:`jrt.scene.assemble` put it). Which entries a material has is part of the pytree's
@@ -46,6 +53,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jrt.camera import _pinhole, subpixel_offsets
+from jrt.normals import corner_normals_from_pairs, smoothing_pairs
 from jrt.spectral import SpectralTables, rgb_to_reflectance
 from jrt.whitted import RenderSetup, SceneArrays, _lamp_channels
 
@@ -71,6 +79,9 @@ class SceneConstants(NamedTuple):
     lamp_spectra: Float[Array, "l c"]  # each lamp's channels at intensity 1 (Y = 1)
     sky: Float[Array, "2 c"]  # zenith and nadir radiance (zero on a black background)
     tables: SpectralTables  # wavelengths, illuminant and the reflectance basis among them
+    # (corner, partner) pairs smoothed together (jrt.normals.smoothing_pairs), for vertices
+    # that are parameters; [2, 0] otherwise.
+    smoothing: Int[Array, "2 p"]
 
 
 def _f32(value) -> Array:
@@ -78,9 +89,11 @@ def _f32(value) -> Array:
 
 
 def scene_parameters(
-    setup: RenderSetup, width: int | None = None, height: int | None = None
+    setup: RenderSetup, width: int | None = None, height: int | None = None, *,
+    geometry: bool = False,
 ) -> Params:
-    """The scene's continuous parameters (see the module's docstring for the layout).
+    """The scene's continuous parameters (see the module's docstring for the layout);
+    ``geometry`` adds the vertices.
 
     The camera is ``setup.camera(width, height)``: at another image size an automatically
     framed camera is refitted, so its ``eye`` depends on the size asked for.
@@ -103,11 +116,24 @@ def scene_parameters(
         "camera": {"eye": _f32(camera.eye), "target": _f32(camera.target),
                    "up": _f32(camera.up), "vfov": _f32(camera.vfov)},
         "settings": {"ambient": _f32(setup.scene.settings.ambient)},
-    }
+    } | ({"geometry": {"vertices": _f32(setup.geometry.vertices)}} if geometry else {})
 
 
-def scene_constants(setup: RenderSetup) -> SceneConstants:
-    """The setup's non-parameters, as :func:`jrt.whitted.prepare` computed them."""
+def scene_smoothing_pairs(setup: RenderSetup) -> Int[np.ndarray, "2 p"]:
+    """int32 [2, P]: :func:`jrt.normals.smoothing_pairs` of every object with its crease
+    angle and of the floor with 0 (as :func:`jrt.scene.assemble` computed the normals), in
+    the corners of the assembled mesh."""
+    geometry = setup.geometry
+    creases = [obj.crease_angle for obj in setup.scene.objects] + [0.0]  # the floor: flat
+    pairs = [smoothing_pairs(geometry.vertices, geometry.faces[start:stop], crease)
+             + 3 * start
+             for (start, stop), crease in zip(geometry.object_faces, creases, strict=False)]
+    return np.concatenate(pairs, axis=1).astype(np.int32)
+
+
+def scene_constants(setup: RenderSetup, *, geometry: bool = False) -> SceneConstants:
+    """The setup's non-parameters, as :func:`jrt.whitted.prepare` computed them; with
+    ``geometry``, the smoothing pairs that vertices as parameters need."""
     geometry, tables = setup.geometry, setup.tables
     names = [mat.name for mat in geometry.materials]
     rank = {name: i for i, name in enumerate(sorted(names))}
@@ -121,6 +147,8 @@ def scene_constants(setup: RenderSetup) -> SceneConstants:
         material=arrays.material, kind=arrays.kind,
         material_rank=jnp.asarray([rank[name] for name in names], jnp.int32),
         lamp_spectra=_f32(spectra), sky=arrays.sky, tables=tables,
+        smoothing=jnp.asarray(scene_smoothing_pairs(setup) if geometry
+                              else np.zeros((2, 0), np.int32)),
     )
 
 
@@ -149,6 +177,8 @@ def scene_arrays(params: Params, constants: SceneConstants) -> SceneArrays:
     Albedo and mirror rows become spectra by :func:`jrt.spectral.rgb_to_reflectance`
     (Mallett & Yuksel 2019; the RGB itself in RGB mode), dielectric rows are ``(A, B)`` or
     ``(index, 0)``, a lamp's radiance is its unit-intensity spectrum times its intensity.
+    With ``params["geometry"]``, the vertices are those and the corner normals theirs
+    (:func:`jrt.normals.corner_normals_from_pairs` of ``constants.smoothing``).
     """
     names = sorted(params["materials"])
     m = constants.kind.shape[0]
@@ -169,8 +199,15 @@ def scene_arrays(params: Params, constants: SceneConstants) -> SceneArrays:
         intensities = jnp.stack([_f32(lamp["intensity"]) for lamp in lamps])
     else:  # no lamp: empty arrays of the right shapes (jnp.stack of nothing fails)
         positions, intensities = jnp.zeros((0, 3), jnp.float32), jnp.zeros(0, jnp.float32)
+    vertices, normals = constants.vertices, constants.normals
+    if "geometry" in params:
+        vertices = _f32(params["geometry"]["vertices"])
+        if constants.smoothing.shape[1] == 0 and constants.faces.shape[0] > 0:
+            raise ValueError("params['geometry'] needs the smoothing pairs: make the "
+                             "constants with scene_constants(setup, geometry=True)")
+        normals = corner_normals_from_pairs(vertices, constants.faces, constants.smoothing)
     return SceneArrays(
-        vertices=constants.vertices, faces=constants.faces, normals=constants.normals,
+        vertices=vertices, faces=constants.faces, normals=normals,
         material=constants.material, kind=constants.kind,
         albedo=rgb_to_reflectance(albedo_rgb, tables).reshape(m, c),
         reflectance=rgb_to_reflectance(reflectance_rgb, tables).reshape(m, c),
@@ -245,4 +282,5 @@ __all__ = [
     "scene_arrays",
     "scene_constants",
     "scene_parameters",
+    "scene_smoothing_pairs",
 ]

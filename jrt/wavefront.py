@@ -66,6 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+import accel
 from jrt.params import (
     camera_from_parameters,
     check_parameters,
@@ -73,6 +74,7 @@ from jrt.params import (
     scene_constants,
     scene_parameters,
 )
+from jrt.refitting import refit
 from jrt.scene import Scene
 from jrt.trace import bucket_size, raise_on_status
 from jrt.whitted import (
@@ -418,6 +420,8 @@ def _tree_program(params, constants, structure, threshold, key, origins, directi
                   *, shape: _Shape):
     """:func:`_render_program` from the camera rays [H * W * S, 3]."""
     scene = scene_arrays(params, constants)
+    if "geometry" in params:  # moved vertices: the structure's boxes follow them
+        structure = refit(structure, scene.vertices, constants.faces)
     pixels = shape.width * shape.height
     copies = 1 if shape.subpixel else shape.spp  # paths per position
     per_ray = 1 if shape.bundles or not shape.static.features.dispersion else shape.channels
@@ -458,7 +462,7 @@ class Renderer:
     def __init__(self, setup: RenderSetup, params, *, width: int, height: int, depth: int,
                  spp: int, mode: str, threshold: float, capacities: tuple[int, ...],
                  key: Array, bundles: bool, later_guess: int = _MIN_LATER,
-                 differentiable: bool = False):
+                 differentiable: bool = False, geometry: bool = False):
         self.setup = setup
         self.differentiable = differentiable
         self.params = params
@@ -468,7 +472,7 @@ class Renderer:
             self._depth = jax.device_put(np.int32(depth))
         self.capacities = capacities  # the later levels: one size
         self.last_stats: RenderStats | None = None
-        self._constants = scene_constants(setup)
+        self._constants = scene_constants(setup, geometry=geometry)
         self._threshold = jnp.float32(threshold)
         self._key = key
         self._size = (width, height, spp)
@@ -609,6 +613,7 @@ def renderer(
     capacities: tuple[int, ...] | None = None,
     key: Array | None = None,
     differentiable: bool = False,
+    geometry: bool = False,
 ) -> tuple[Renderer, dict]:
     """A scene's Whitted render as a pure function of its parameters::
 
@@ -642,12 +647,26 @@ def renderer(
             tree's levels and a level's chunks get static lengths (empty ones skipped),
             which JAX can run backwards. Forward mode (``jax.jvp``, ``jax.jacfwd``) works
             either way. See ``docs/gradients.md`` for what the derivative is.
+        geometry: the vertices are parameters too (``params["geometry"]["vertices"]``,
+            :mod:`jrt.params`): each render refits the structure to them
+            (:func:`jrt.refit`: brute force or the BVH, ``settings.accel``) and
+            recomputes the corner normals, so ``jax.grad`` reaches the vertices. Costs a
+            refit a render; off by default.
+
+    Raises:
+        ValueError: ``geometry`` with a structure that cannot be refit.
     """
     setup, depth, threshold = render_arguments(
         scene, max_depth=max_depth, samples=samples, mode=mode, spp=spp, features=None,
         threshold=threshold)
+    if geometry and accel.kind(setup.structure.kind).refit is None:
+        can = ", ".join(k.name for k in accel.kinds() if k.refit is not None)
+        raise ValueError(
+            f"geometry=True refits the structure to the vertices on every render, and a "
+            f"{setup.structure.kind} cannot be refit; set the scene's settings.accel to one "
+            f"of {can}")
     camera = setup.camera(width, height)
-    params = scene_parameters(setup, camera.width, camera.height)
+    params = scene_parameters(setup, camera.width, camera.height, geometry=geometry)
     bundles = setup.spectral
     split = setup.channels if setup.spectral else 1
     first = camera.num_rays * spp
@@ -661,7 +680,8 @@ def renderer(
     render = Renderer(setup, params, width=camera.width, height=camera.height, depth=depth,
                       spp=spp, mode=mode, threshold=threshold, capacities=capacities,
                       key=jax.random.PRNGKey(0) if key is None else key, bundles=bundles,
-                      later_guess=guess[1], differentiable=differentiable)
+                      later_guess=guess[1], differentiable=differentiable,
+                      geometry=geometry)
     return render, params
 
 

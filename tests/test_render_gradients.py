@@ -3,13 +3,14 @@
 What the derivative is: the derivative of the image with the hit triangles held fixed
 (``docs/gradients.md``). The scene: a glass slab (flat faces, Cauchy dispersion) over a
 white floor under a lamp, seen from above at an angle, 16x16 pixels, 8 wavelength samples,
-depth 3. On its centre pixels (seen through the slab's large faces: no ray there changes
-triangles or crosses a shadow edge when a parameter moves a little) the image is smooth in
-every parameter, and the gradient must equal a central difference, to the differences'
-own float32 precision: exactly (any step) where the image is linear (albedo, lamp
-intensity, ambient share). On the whole image the slab's edges (a silhouette) and its
-shadow's edge move with the camera and the lamp: the image jumps there, the derivative
-does not contain the jumps, and the two disagree; that test says why.
+depth 3, its vertices parameters too (``geometry=True``: the BVH refit on every render). On
+its centre pixels (seen through the slab's large faces: no ray there changes triangles or
+crosses a shadow edge when a parameter moves a little) the image is smooth in every
+parameter, and the gradient must equal a central difference, to the differences' own float32
+precision: exactly (any step) where the image is linear (albedo, lamp intensity, ambient
+share). On the whole image the slab's edges (a silhouette) and its shadow's edge move with
+the camera and the lamp: the image jumps there, the derivative does not contain the jumps,
+and the two disagree; that test says why.
 """
 
 from __future__ import annotations
@@ -101,7 +102,8 @@ def slab(tmp_path_factory):
     box.unmerge_vertices()  # flat faces
     box.export(folder / "slab.off")
     (folder / "slab.toml").write_text(SLAB)
-    render, params = wavefront.renderer(str(folder / "slab.toml"), differentiable=True)
+    render, params = wavefront.renderer(str(folder / "slab.toml"), differentiable=True,
+                                        geometry=True)
     image = np.asarray(render(params))  # sizes the levels
     weights = np.random.default_rng(1).uniform(0.5, 1.5, image.shape).astype(np.float32)
     centre = np.zeros(image.shape, np.float32)
@@ -124,7 +126,7 @@ def test_every_leaf_has_a_finite_gradient_and_the_image_is_the_renderers(slab, t
             assert np.isfinite(np.asarray(value)).all(), jax.tree_util.keystr(path)
     plain, _ = wavefront.renderer(render.setup)
     plain.capacities = render.capacities  # sized already: one compile, not two
-    want = np.asarray(plain(params))
+    want = np.asarray(plain({k: v for k, v in params.items() if k != "geometry"}))
     np.testing.assert_allclose(np.asarray(render(params)), want, rtol=1e-5,
                                atol=1e-6 * np.abs(want).max())
 
@@ -162,3 +164,46 @@ def test_moving_edges_are_not_in_the_derivative(slab, path):
     want = _central(losses["whole"], params, path, 1e-2, component)
     assert np.isfinite(got) and abs(got - want) > 0.1 * abs(want), (got, want)
     # The same parameter on the centre pixels, where nothing jumps: they agree (above).
+
+
+#: The slab's vertices (the box's 36, unmerged) come first in the scene's, the floor's 4 last.
+SLAB_VERTICES = 36
+
+
+@pytest.mark.parametrize("move", ["thickness", "tilt"])
+def test_moving_vertices_matches_central_differences(slab, move):
+    """The derivative along a motion of the slab's vertices: its front face (z = +0.1)
+    pushed toward the camera, or tilted about the y axis (each front vertex moved along
+    z by its x). Seen through the front face, the centre pixels refract through a moved
+    surface (the path in the glass and the floor point behind it move): smooth, so the
+    gradient must equal a central difference of the refit render (summed in float64: the
+    float32 loss's own rounding is a few per cent of the difference quotient here)."""
+    render, params, _, grads = slab
+    vertices = np.asarray(params["geometry"]["vertices"])
+    assert vertices.shape == (SLAB_VERTICES + 4, 3)
+    front = np.flatnonzero(vertices[:SLAB_VERTICES, 2] > 0)
+    assert len(front) == 18  # the corners at z = +0.1 of the front face and the sides
+    direction = np.zeros_like(vertices)
+    direction[front, 2] = 1.0 if move == "thickness" else vertices[front, 0]
+    got = float(np.sum(np.asarray(grads["centre"]["geometry"]["vertices"]) * direction))
+    image = np.asarray(render(params))
+    weights = np.random.default_rng(1).uniform(0.5, 1.5, image.shape)  # the fixture's
+    weights[:5], weights[11:], weights[:, :5], weights[:, 11:] = 0, 0, 0, 0  # centre 6x6
+    step = 4e-3
+
+    def at(h):
+        moved = _replace(params, ("geometry", "vertices"),
+                         jnp.asarray(vertices + np.float32(h) * direction))
+        return float(np.sum(weights * np.asarray(render(moved), np.float64)))
+
+    want = (at(step) - at(-step)) / (2 * step)
+    assert got != 0 and abs(got - want) <= 2e-3 * abs(want), (got, want)
+
+
+def test_vertices_as_parameters_need_a_structure_that_refits(tmp_path):
+    folder = tmp_path
+    trimesh.creation.box(extents=(2.0, 2.0, 0.2)).export(folder / "slab.off")
+    (folder / "slab.toml").write_text(SLAB.replace('accel = "bvh"', 'accel = "kdtree"'))
+    with pytest.raises(ValueError, match=r"a kdtree cannot be refit; set the scene's "
+                       r"settings.accel to one of brute, bvh"):
+        wavefront.renderer(str(folder / "slab.toml"), geometry=True)
