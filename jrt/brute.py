@@ -60,10 +60,12 @@ def _chunk_t(kernel, o, d, tm, tris):
     return jnp.where(t < tm[None, :], t, jnp.inf)
 
 
-@functools.partial(jax.jit, static_argnames=("kernel", "ray_chunk", "tri_chunk"))
+@functools.partial(jax.jit, static_argnames=("kernel", "ray_chunk", "tri_chunk", "rows_out"))
 def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: str,
-                ray_chunk: int = RAY_CHUNK, tri_chunk: int = TRI_CHUNK) -> Hits:
-    """Closest hit of every ray among ``triangles`` [T, 3, 3] (rows ``triangle_ids`` [T])."""
+                ray_chunk: int = RAY_CHUNK, tri_chunk: int = TRI_CHUNK,
+                rows_out: bool = False) -> Hits:
+    """Closest hit of every ray among ``triangles`` [T, 3, 3] (rows ``triangle_ids`` [T]);
+    with ``rows_out``, ``(hits, rows)``: the winners' rows too (int32 [N], -1: a miss)."""
     fn = get_kernel(kernel)
     n = origins.shape[0]
     o, d, tm = _pad_rays(origins, directions, tmax, ray_chunk)
@@ -104,10 +106,11 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
     best_t, best_row = lax.map(per_ray_chunk, (o, d, tm))
     best_t, best_row = best_t.reshape(-1)[:n], best_row.reshape(-1)[:n]
     # The winner's t, u, v evaluated once, as every traversal does (see winner_hits).
-    return winner_hits(fn, jnp.concatenate([origins, directions], axis=1),
+    hits = winner_hits(fn, jnp.concatenate([origins, directions], axis=1),
                        tri_chunks.reshape(-1, 3, 3),
                        jnp.pad(triangle_ids, (0, tri_chunks.shape[0] * tri_chunk
                                               - triangle_ids.shape[0])), best_row)
+    return (hits, best_row) if rows_out else hits
 
 
 @functools.partial(jax.jit, static_argnames=("kernel", "ray_chunk", "tri_chunk"))

@@ -357,7 +357,7 @@ def _select(mask, new, old):
 
 
 def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, stack_size,
-               counters, references):
+               counters, references, rows_out=False):
     """All rays of ``rays`` [n, 7] (see :func:`_pack_rays`) through one device's lanes.
 
     One iteration: refill the lanes that finished (write their winner, take the next
@@ -574,7 +574,10 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     budget = iteration_budget(arrays, n, lanes)
     s = lax.while_loop(lambda s: jnp.any(s["ray_id"] < n) & (s["iteration"] < budget),
                        body, state)
-    hits = winner_hits(fn, rays, triangles, triangle_ids, s["out"][:n])
+    rows = s["out"][:n]
+    hits = winner_hits(fn, rays, triangles, triangle_ids, rows)
+    if rows_out:  # the winners' rows as well (jrt.trace's derivative rule reads them)
+        hits = (hits, rows)
     count = s["out_count"][:n] if counters else None
     # The rays' validity (ray_problems), from the packed rows: one place for one device
     # and for each device's share, in the program that reads the rays anyway.
@@ -597,9 +600,10 @@ def compiled_programs() -> int:
 
 
 @functools.partial(jax.jit, static_argnames=(
-    "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices"))
+    "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices",
+    "rows_out"))
 def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, lanes,
-              stack_size, counters, devices):
+              stack_size, counters, devices, rows_out=False):
     n = origins.shape[0]
     if arrays["triangles"].shape[0] == 0:
         # No triangle at all (an empty or all-degenerate mesh): one zero triangle, which
@@ -609,7 +613,7 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
     references = arrays.get("references")
     run = functools.partial(
         _run_lanes, traversal, kernel=kernel, any_hit=any_hit, lanes=lanes,
-        stack_size=stack_size, counters=counters, references=references)
+        stack_size=stack_size, counters=counters, references=references, rows_out=rows_out)
     if devices is None or len(devices) == 1 or n < 2 * len(devices):
         return run(arrays, _pack_rays(origins, directions, tmax))
     k = len(devices)
@@ -658,14 +662,18 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
 
 def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel: str,
              any_hit: bool, lanes: int | None = None, stack_size: int = DEFAULT_STACK_SIZE,
-             counters: bool = False, devices=None):
+             counters: bool = False, devices=None, rows_out: bool = False):
     """Runs every ray through ``traversal``: (hits, counters or None, status).
 
     ``status`` is an int32 scalar of ``STATUS_*`` bits (0: every ray answered);
-    ``lanes=None`` takes :func:`default_lanes` of the devices."""
+    ``lanes=None`` takes :func:`default_lanes` of the devices. With ``rows_out`` the
+    first element is ``(hits, rows)``: each winner's row of ``arrays["triangles"]`` as
+    well (int32 [N], -1 for a miss)."""
     if origins.shape[0] == 0:
         empty = Hits(jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.int32),
                      jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.float32))
+        if rows_out:
+            empty = (empty, jnp.zeros(0, jnp.int32))
         return empty, (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.int32(0)
     devs = tuple(devices) if devices is not None else tuple(cpu_devices())
     if not devs:
@@ -674,7 +682,7 @@ def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel:
         lanes = default_lanes(devs)
     return _traverse(arrays, origins, directions, tmax, traversal=traversal, kernel=kernel,
                      any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters,
-                     devices=devs)
+                     devices=devs, rows_out=rows_out)
 
 
 #: Relative widening of every box test. Ize ("Robust BVH ray traversal", JCGT 2013)

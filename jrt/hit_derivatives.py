@@ -52,42 +52,34 @@ def closed_form_hit(triangle: Float[Array, "*n 3 3"], origin: Float[Array, "*n 3
     return t, u, v, det
 
 
-def rows_of_faces(triangle_ids: Int[Array, " rows"], faces: Int[Array, "*n"]) -> Int[Array, "*n"]:
-    """The row of ``triangle_ids`` that holds each face index in ``faces`` (0 where a
-    face is not there, a miss's -1 say): a structure stores each face once, in its own
-    row order (``accel.structure.Structure``)."""
-    # A structure closed over by a caller's jit is a constant there: the barrier keeps XLA
-    # from sorting its rows at compile time (seconds for the camel), and lets it hoist the
-    # sort out of a loop around the query instead.
-    triangle_ids = jax.lax.optimization_barrier(jnp.asarray(triangle_ids))
-    order = jnp.argsort(triangle_ids)
-    ordered = triangle_ids[order]
-    position = jnp.clip(jnp.searchsorted(ordered, faces), 0, triangle_ids.shape[0] - 1)
-    return jnp.where(ordered[position] == faces, order[position], 0)
-
-
-def hit_tangents(triangles: Float[Array, "rows 3 3"], triangle_ids: Int[Array, " rows"],
+def hit_tangents(triangles: Float[Array, "rows 3 3"], rows: Int[Array, "*n"],
                  origins: Float[Array, "*n 3"], directions: Float[Array, "*n 3"],
-                 hit_triangle: Int[Array, "*n"], triangles_dot: Float[Array, "rows 3 3"],
-                 origins_dot: Float[Array, "*n 3"], directions_dot: Float[Array, "*n 3"]):
-    """Tangents ``(t_dot, u_dot, v_dot)`` (float32) of the hits on ``hit_triangle`` (face
-    indices, -1 for a miss) for the tangents of the triangle rows, origins and
-    directions; exactly 0 for a miss and for a singular hit (module docstring)."""
-    if triangle_ids.shape[0] == 0:  # no triangle: every ray misses
-        zero = jnp.zeros(hit_triangle.shape, jnp.float32)
+                 triangles_dot: Float[Array, "rows 3 3"] | None,
+                 origins_dot: Float[Array, "*n 3"] | None,
+                 directions_dot: Float[Array, "*n 3"] | None):
+    """Tangents ``(t_dot, u_dot, v_dot)`` (float32) of the hits on the triangle ``rows``
+    (the query's winning rows of ``triangles``, -1 for a miss) for the tangents of the
+    triangle rows, origins and directions (None: a zero tangent); exactly 0 for a miss
+    and for a singular hit (module docstring)."""
+    if triangles.shape[0] == 0:  # no triangle: every ray misses
+        zero = jnp.zeros(rows.shape, jnp.float32)
         return zero, zero, zero
-    row = rows_of_faces(triangle_ids, hit_triangle)
+    hit = rows >= 0
+    row = jnp.where(hit, rows, 0)
     f32 = jnp.float32
     triangle = jnp.asarray(triangles, f32)[row]
     origin, direction = origins.astype(f32), directions.astype(f32)
     _, _, _, det = closed_form_hit(triangle, origin, direction)
-    ok = (hit_triangle >= 0) & (det != 0) & jnp.isfinite(det)
+    ok = hit & (det != 0) & jnp.isfinite(det)
     mask3, mask33 = ok[..., None], ok[..., None, None]
     primals = (jnp.where(mask33, triangle, jnp.asarray(_SAFE_TRIANGLE, f32)),
                jnp.where(mask3, origin, jnp.asarray(_SAFE_ORIGIN, f32)),
                jnp.where(mask3, direction, jnp.asarray(_SAFE_DIRECTION, f32)))
-    tangents = (jnp.where(mask33, triangles_dot.astype(f32)[row], 0),
-                jnp.where(mask3, origins_dot.astype(f32), 0),
-                jnp.where(mask3, directions_dot.astype(f32), 0))
+    zero3 = jnp.zeros(origin.shape, f32)
+    tangents = (jnp.zeros(triangle.shape, f32) if triangles_dot is None
+                else jnp.where(mask33, triangles_dot.astype(f32)[row], 0),
+                zero3 if origins_dot is None else jnp.where(mask3, origins_dot.astype(f32), 0),
+                zero3 if directions_dot is None
+                else jnp.where(mask3, directions_dot.astype(f32), 0))
     _, (t_dot, u_dot, v_dot, _) = jax.jvp(closed_form_hit, primals, tangents)
     return tuple(jnp.where(ok, x, 0).astype(f32) for x in (t_dot, u_dot, v_dot))

@@ -51,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Bool, Float
 
 import accel
@@ -271,22 +272,25 @@ def _status_callback(status, *, stack_size):
 
 
 def _core(structure, origins, directions, tmax, *, kernel, any_hit, counters, lanes,
-          stack_size):
+          stack_size, rows_out=False):
     """The jittable query on checked rays (float32 [N, 3], [N, 3], [N]): (answers, counters
-    int32 [N, 3] or None, status int32 scalar). Brute force reports no status (0)."""
+    int32 [N, 3] or None, status int32 scalar). Brute force reports no status (0). With
+    ``rows_out`` (closest hits) the answers are ``(hits, rows)``: each winner's row of the
+    structure's ``triangles`` too, -1 for a miss."""
     if not accel.kind(structure.kind).engine:  # brute force: no engine, every triangle
         if any_hit:
             out = brute.occluded(structure["triangles"], origins, directions, tmax,
                                  kernel=kernel)
         else:
             out = brute.closest_hit(structure["triangles"], structure["triangle_ids"],
-                                    origins, directions, tmax, kernel=kernel)
+                                    origins, directions, tmax, kernel=kernel,
+                                    rows_out=rows_out)
         return out, None, jnp.int32(0)
     # The arrays and layout were checked against the kind (_check_structure).
     hits, count, status = engine.traverse(
         traversal_of(structure), structure.arrays, origins, directions, tmax,
         kernel=kernel, any_hit=any_hit, lanes=lanes, stack_size=stack_size,
-        counters=counters)
+        counters=counters, rows_out=rows_out and not any_hit)
     return (hits.triangle >= 0 if any_hit else hits), count, status
 
 
@@ -305,7 +309,7 @@ def _item_map(fn, in_batched, args):
 
 
 @functools.cache
-def _flat_query(kernel, any_hit, counters, lanes, stack_size):
+def _flat_query(kernel, any_hit, counters, lanes, stack_size, rows_out=False):
     """:func:`_core` for ``(structure, origins, directions, tmax)`` with these static
     options, as a ``custom_vmap`` function: under ``jax.vmap`` it runs *once* on the batch
     items' rays laid end to end (see the module's docstring). One function per set of
@@ -320,7 +324,7 @@ def _flat_query(kernel, any_hit, counters, lanes, stack_size):
     words ORed).
     """
     options = dict(kernel=kernel, any_hit=any_hit, counters=counters, lanes=lanes,
-                   stack_size=stack_size)
+                   stack_size=stack_size, rows_out=rows_out)
     flat = jax.custom_batching.custom_vmap(functools.partial(_core, **options))
 
     @flat.def_vmap
@@ -349,7 +353,7 @@ def _flat_query(kernel, any_hit, counters, lanes, stack_size):
 
 
 def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, lanes,
-           stack_size, status_out=False):
+           stack_size, status_out=False, rows_out=False):
     """What :func:`closest_hit` and :func:`occluded` share: checks, size bucket, the
     engine or brute force, the answers of the real rays. Returns (hits, counters or
     None), and with ``status_out`` the engine's status word instead of raising on it
@@ -370,7 +374,7 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
     if size != n:
         origins, directions, tmax = _padded(origins, directions, tmax, size)
     options = dict(kernel=kernel, any_hit=any_hit, counters=counters, lanes=lanes,
-                   stack_size=stack_size)
+                   stack_size=stack_size, rows_out=rows_out)
     if is_brute:
         _check_ray_values(origins, directions, tmax, named=rays)  # padding rays are valid
     if _buckets_enabled():  # (brute force declares no rows: it tests every triangle)
@@ -414,19 +418,24 @@ def _differentiable_query(kernel, any_hit, counters, lanes, stack_size, status_o
 
     query = jax.custom_jvp(primal)
 
-    @query.defjvp
+    # Symbolic zeros: a structure that nothing differentiates (a render's fixed mesh) has
+    # a zero tangent, and its rows' terms are left out, not gathered from a zero array.
+    @functools.partial(query.defjvp, symbolic_zeros=True)
     def _rule(primals, tangents):
         structure, origins, directions, _ = primals
-        answers = primal(*primals)
-        out, rest = answers[0], answers[1:]
         if any_hit:
+            answers = primal(*primals)
             return answers, _integer_zeros(answers)
+        # The same query, which also hands over each winner's row of the triangles.
+        (out, rows), *rest = _query(*primals, **options, rows_out=True)
+        answers = (out, *rest)
         structure_dot, origins_dot, directions_dot, _ = tangents
         t_dot, u_dot, v_dot = hit_tangents(
-            structure["triangles"], structure["triangle_ids"], origins, directions,
-            out.triangle, structure_dot["triangles"], origins_dot, directions_dot)
+            structure["triangles"], rows, origins, directions,
+            *(None if isinstance(x, SymbolicZero) else x
+              for x in (structure_dot["triangles"], origins_dot, directions_dot)))
         out_dot = Hits(t=t_dot, triangle=_integer_zeros(out.triangle), u=u_dot, v=v_dot)
-        return answers, (out_dot, *_integer_zeros(rest))
+        return answers, (out_dot, *_integer_zeros(tuple(rest)))
 
     return query
 

@@ -292,6 +292,21 @@ def _shade_level(structure, scene: SceneArrays, rays: LevelRays, key, static: _S
                             part.channels, part.valid, k, static=static)
 
     shapes = jax.eval_shape(shade, jnp.int32(0))
+    if static.differentiable:
+        # Each chunk slot shaded (or, past the live ones, zeros) as an output of its own,
+        # stacked: a loop that carried the whole level and wrote each chunk into it made
+        # reverse mode carry the level through every iteration.
+        def shade_or_skip(i):
+            return jax.lax.cond(i < live, shade, lambda i: jax.tree.map(
+                lambda a: jnp.zeros(a.shape, a.dtype), shapes), i)
+
+        parts = jax.lax.map(shade_or_skip, jnp.arange(n // chunk, dtype=jnp.int32))
+        return parts._replace(
+            **{name: value.reshape(n, *value.shape[2:])
+               for name, value in parts._asdict().items() if value.ndim > 1},
+            shadow_rays=parts.shadow_rays.sum(dtype=parts.shadow_rays.dtype),
+            status=jax.lax.reduce(parts.status, parts.status.dtype.type(0),
+                                  jax.lax.bitwise_or, (0,)))
     out = jax.tree.map(lambda a: jnp.zeros((n, *a.shape[1:]) if a.ndim else (), a.dtype),
                        shapes)
 
