@@ -1,7 +1,7 @@
 """Worked inverse problems: parameters recovered from a target image by gradient descent.
 
     python -m benchmarks.inverse [--problem glass|depth|both] [--width 48] [--height 36]
-                                 [--steps 150] [--json PATH] [--plot PATH]
+                                 [--steps 150] [--quick] [--json PATH] [--plot PATH]
 
 ``glass``: the glass camel rendered with BK7's Cauchy coefficients (A, B) = (1.50459,
 0.004202) is the target; the search starts from fused silica's (1.44826, 0.003506) and
@@ -10,8 +10,10 @@ the start values (so that A and B, three orders of magnitude apart, move alike);
 gradients come from ``jrt.wavefront.renderer(..., differentiable=True)``. ``depth``: the
 19k camel translated by 5 % of its diagonal and scaled by 1.05 is found again from a
 depth image of the camel where it was built (``t`` of ``jrt.closest_hit`` on
-``jrt.refit`` of its BVH). See ``docs/gradients.md``; the record holds the loss and the
-parameters at every step and the error at the end.
+``jrt.refit`` of its BVH). See ``docs/gradients.md``; the record (``"kind": "inverse"``,
+which ``reports.report`` draws) holds the loss and the parameters at every step and the
+error at the end. ``--quick`` (what ``jrt study --quick`` runs): the depth problem alone,
+at 32x24 pixels.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=150, help="Adam steps (default 150)")
     p.add_argument("--rate", type=float, default=0.02, help="Adam's learning rate, in units "
                    "of the start values (default 0.02)")
+    p.add_argument("--quick", action="store_true", help="the depth problem alone at 32x24 "
+                   "(a smoke test: seconds instead of a minute)")
     p.add_argument("--json", default=None, help="write the record here")
     p.add_argument("--plot", default=None, help="draw the loss and parameter curves here "
                    "(PNG)")
@@ -147,15 +151,11 @@ def depth_problem(args) -> dict:
             "seconds": time.perf_counter() - begun}
 
 
-def plot(record: dict, path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def draw(record: dict, fig) -> None:
+    """The loss (left) and each parameter's distance to the truth in units of its start
+    distance (right) against the Adam step, one row of axes a problem, on ``fig``."""
     problems = record["problems"]
-    fig, axes = plt.subplots(len(problems), 2, figsize=(10, 3.2 * len(problems)),
-                             squeeze=False)
+    axes = fig.subplots(len(problems), 2, squeeze=False)
     for row, problem in zip(axes, problems, strict=True):
         row[0].semilogy(problem["losses"])
         row[0].set_title(f"{problem['problem']}: loss (mean squared difference)")
@@ -168,13 +168,30 @@ def plot(record: dict, path: str) -> None:
         row[1].set_title(f"{problem['problem']}: (value - truth) / |start - truth|")
         row[1].set_xlabel("Adam step")
         row[1].legend()
+
+
+def figure_size(record: dict) -> tuple[float, float]:
+    return 10.0, 3.2 * len(record["problems"])
+
+
+def plot(record: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=figure_size(record))
+    draw(record, fig)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
     print(f"-> {path}")
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.quick:
+        args.problem, args.width, args.height = "depth", 32, 24
     problems = []
     if args.problem in ("glass", "both"):
         problems.append(glass_problem(args))
@@ -183,7 +200,7 @@ def main(argv=None) -> int:
     record = {"kind": "inverse", "command": command_line(PROG, argv),
               "date": time.strftime("%Y-%m-%d"), "width": args.width,
               "height": args.height, "steps": args.steps, "rate": args.rate,
-              "problems": problems}
+              "quick": bool(args.quick), "problems": problems}
     for p in problems:
         if "relative_error" in p:
             error = "relative errors " + ", ".join(

@@ -292,3 +292,17 @@ def fig_heatmaps(b: Bench, recs: list[dict], file: Path) -> None:
     fig.suptitle("Per-pixel cost of the camera rays" + (f" — {b.path.name}" if b.label else ""),
                  fontsize=10)
     _save(fig, file, b.command, layout=False, note=bench_indicative(b))
+
+
+def fig_inverse(record: dict, file: Path, command: str, note: str = "") -> None:
+    """The loss and parameter curves of a worked inverse problem
+    (:func:`benchmarks.inverse.draw`, the drawing its ``--plot`` makes), with the command
+    under it."""
+    from matplotlib.figure import Figure
+
+    from benchmarks.inverse import draw, figure_size
+
+    width, height = figure_size(record)
+    fig = Figure(figsize=(width, height + 0.6))
+    draw(record, fig)
+    _save(fig, file, command, note=note)

@@ -1,8 +1,8 @@
-"""The report's inputs: reading and recognising the JSON results (benchmark suite,
-stability suite, work–precision records), the views of a benchmark run the report needs
-(:class:`Bench`), the command that made each file, what a run supports (quick runs are
-marked indicative; power laws are fitted through enough sizes only), and the orders in
-which structures, kernels and ray sets are listed."""
+"""The report's inputs: reading and recognising the JSON results (benchmark suite, stability
+suite, work–precision records, worked inverse problems), the views of a benchmark run the
+report needs (:class:`Bench`), the command that made each file, what a run supports (quick
+runs are marked indicative; power laws are fitted through enough sizes only), and the orders
+in which structures, kernels and ray sets are listed."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ STABILITY_COMMAND = "python -m benchmarks.stability"
 #: exact versus Schlick) write records of kind "work_precision"; ``jrt study`` runs them.
 WORK_PRECISION_COMMAND = "jrt study"
 REPORT_COMMAND = "python -m reports.report"
+INVERSE_COMMAND = "python -m benchmarks.inverse"
 
 KERNEL_ORDER = ("watertight", "moller_trumbore", "plane_barycentric")
 SET_ORDER = ("camera", "shadow", "reflected", "refracted", "incoherent")
@@ -95,7 +96,8 @@ def stability_rows(body) -> list[dict]:
 _EXPECTED = (
     "expected a benchmark suite result (top-level \"schema\": \"jrt-bench/1\", from "
     f"`{BENCH_COMMAND}`), a stability suite result (top-level \"cases\", from "
-    f"`{STABILITY_COMMAND}`) or records of kind \"work_precision\"")
+    f"`{STABILITY_COMMAND}`), records of kind \"work_precision\" or a worked inverse "
+    f"problem (\"kind\": \"inverse\", from `{INVERSE_COMMAND}`)")
 
 
 @dataclass
@@ -167,6 +169,7 @@ class Inputs:
     bench: list[Bench] = field(default_factory=list)
     stability: list[tuple[Path, dict]] = field(default_factory=list)
     work_precision: list[tuple[Path, dict, str]] = field(default_factory=list)
+    inverse: list[tuple[Path, dict]] = field(default_factory=list)
     kinds: list[tuple[Path, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     #: Why a file's numbers are indicative only (a quick run), by file; absent when full.
@@ -197,11 +200,14 @@ def _is_wp(record) -> bool:
 
 
 def classify(data) -> str:
-    """"bench", "stability" or "work_precision"; "" when the content is none of them."""
+    """"bench", "stability", "work_precision" or "inverse"; "" when the content is none of
+    them."""
     if isinstance(data, list):
         return "work_precision" if data and all(_is_wp(r) for r in data) else ""
     if not isinstance(data, dict):
         return ""
+    if data.get("kind") == "inverse":
+        return "inverse"
     schema = data.get("schema")
     if isinstance(schema, str) and schema.startswith("jrt-bench/"):
         return "bench"
@@ -261,6 +267,18 @@ def load_inputs(paths) -> Inputs:
             inputs.stability.append((path, data))
             if stability_indicative(data):
                 inputs.indicative[path] = stability_indicative(data)
+        elif kind == "inverse":
+            problems = data.get("problems")
+            if not isinstance(problems, list) or not all(
+                    isinstance(p, dict) and {"problem", "parameters", "truth", "start", "found",
+                                             "losses", "values"} <= set(p) for p in problems):
+                raise ReportError(f"{path}: an inverse-problem result whose \"problems\" is not "
+                                  "a list of problems (problem, parameters, truth, start, "
+                                  "found, losses, values); expected the JSON written by "
+                                  f"`{INVERSE_COMMAND} --json PATH`")
+            inputs.inverse.append((path, data))
+            if data.get("quick") is True:
+                inputs.indicative[path] = "quick run (one problem, a small image)"
         else:
             records = data if isinstance(data, list) else data["records"]
             cmd = (None if isinstance(data, list) else _recorded_command(data))

@@ -70,6 +70,7 @@ from reports.sections import (
     parse_image,
     section_cost_model,
     section_heatmaps,
+    section_inverse,
     section_machine,
     section_renders,
     section_scaling,
@@ -121,7 +122,7 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
     doc = Doc()
     doc.heading(1, title or "jrt: acceleration structures on the camel")
     kinds = {"bench": "benchmark suite", "stability": "stability suite",
-             "work_precision": "work–precision records"}
+             "work_precision": "work–precision records", "inverse": "worked inverse problems"}
     # Inputs named relative to the report (beside it, as a study writes them): a path of
     # the machine that made it means nothing to a reader.
     doc.para("Generated from " + join_words(f"`{os.path.relpath(p, out)}` ({kinds[k]})"
@@ -163,6 +164,7 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
         section_cost_model(doc, b, out, prefix)
         section_turntable(doc, b)
     section_work_precision(doc, inputs, out)
+    section_inverse(doc, inputs, out)
     for path, data in inputs.stability:
         section_stability(doc, path, data, len(inputs.stability) > 1)
     section_renders(doc, renders, out)

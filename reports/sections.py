@@ -26,12 +26,14 @@ from reports.figures import (
     fig_bars,
     fig_cost_model,
     fig_heatmaps,
+    fig_inverse,
     fig_rates,
     fig_scaling,
     fig_work_precision,
 )
 from reports.inputs import (
     INDICATIVE,
+    INVERSE_COMMAND,
     MIN_FIT_SIZES,
     REPORT_COMMAND,
     WORK_PRECISION_COMMAND,
@@ -410,6 +412,55 @@ def section_work_precision(doc: Doc, inputs: Inputs, out: Path) -> None:
             doc.figure(f, f"figures/{f.name}", _marked(
                        f"Error against run time{': ' + study if study else ''} (each point a "
                        f"measured run). Data: {caption}.", note))
+
+
+def _inverse_error(problem: dict) -> str:
+    """Each parameter's error as the problem records it, in per cent to two digits."""
+    if "relative_error" in problem:
+        return ", ".join(f"{name} {error * 100:.2g} %" for name, error in
+                         zip(problem["parameters"], problem["relative_error"], strict=False))
+    if "translation_error_over_diagonal" in problem:
+        return (f"translation {problem['translation_error_over_diagonal'] * 100:.2g} % of "
+                f"the diagonal, scale {problem.get('scale_error', float('nan')) * 100:.2g} %")
+    return ""
+
+
+def section_inverse(doc: Doc, inputs: Inputs, out: Path) -> None:
+    """The worked inverse problems (``benchmarks.inverse``): parameters recovered from a
+    target image by gradient descent through the differentiable queries and renderer, a
+    table of start, truth and found values and the loss and parameter curves."""
+    doc.heading(2, "Gradients: worked inverse problems")
+    if not inputs.inverse:
+        doc.para("No inverse-problem results in these inputs. "
+                 f"`{INVERSE_COMMAND} --json inverse.json` produces them (the glass camel's "
+                 "Cauchy coefficients from a render, a moved camel from a depth image); pass "
+                 "the JSON to the report to draw them.")
+        return
+    doc.para("Parameters recovered from a target image by gradient descent (Adam, optax) "
+             "on the derivatives of jrt's queries and renderer: the derivative of the image "
+             "with the hit triangles held fixed (`docs/gradients.md`). **glass**: the glass "
+             "camel's Cauchy coefficients (A, B) from a render with BK7's, starting from "
+             "fused silica's; **depth**: the 19k camel's translation and scale from a depth "
+             "image, through `jrt.refit` of its BVH.")
+    for i, (path, data) in enumerate(inputs.inverse, 1):
+        command = data.get("command") or INVERSE_COMMAND
+        note = inputs.indicative.get(path, "")
+        rows = []
+        for p in data["problems"]:
+            rows.append([p["problem"], ", ".join(p["parameters"]),
+                         ", ".join(f"{v:.6g}" for v in p["start"]),
+                         ", ".join(f"{v:.6g}" for v in p["truth"]),
+                         ", ".join(f"{v:.6g}" for v in p["found"]), _inverse_error(p),
+                         str(len(p["losses"]) - 1), seconds_text(p.get("seconds"))])
+        doc.table(["problem", "parameters", "start", "truth", "found", "error",
+                   "steps", "time"], rows)
+        suffix = f"-{i}" if len(inputs.inverse) > 1 else ""
+        f = out / "figures" / f"inverse{suffix}.png"
+        fig_inverse(data, f, command, note=note)
+        doc.figure(f, f"figures/{f.name}", _marked(
+            f"Loss and parameters against the Adam step ({data.get('width')}x"
+            f"{data.get('height')} pixels, {data.get('date', 'date not recorded')}). "
+            f"Data: `{command}`.", note))
 
 
 # ============================================================================================

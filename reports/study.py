@@ -7,9 +7,12 @@ Runs, in this order, each writing its JSON into the output folder:
 1. the benchmark suite (``benchmarks/suite.py``): ``bench.json``;
 2. the stability suite (``benchmarks/stability.py``): ``stability.json``;
 3. the work-precision study (``benchmarks/work_precision.py``): ``work_precision.json``;
-4. renders of the built-in scenes and a dispersion close-up of the glass camel
+4. the worked inverse problems (``benchmarks/inverse.py``, gradient descent through the
+   differentiable queries and renderer; needs optax, skipped with a note without it):
+   ``inverse.json``;
+5. renders of the built-in scenes and a dispersion close-up of the glass camel
    (``jrt.whitted``), which the report copies into ``renders/``;
-5. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
+6. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
    the figures.
 
 The output folder is ``./study`` in the working directory unless ``-o`` names another
@@ -32,6 +35,7 @@ folder.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import time
 from pathlib import Path
@@ -84,7 +88,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
                       "point: the published study's size")
     parser.add_argument("--skip", default="", metavar="STEPS",
                         help="comma-separated steps to skip, from bench, stability, "
-                        "work_precision, renders (their JSON, if present, is reused)")
+                        "work_precision, inverse, renders (their JSON, if present, is reused)")
     parser.add_argument("--structures", type=structure_names, default=None, metavar="NAMES",
                         help="comma-separated acceleration structures for the benchmark "
                         f"suite, from {', '.join(ENGINE_STRUCTURES)} (default all; brute "
@@ -119,7 +123,9 @@ def output_folder(args, parser: argparse.ArgumentParser) -> Path:
     return out
 
 
-STEPS = ("bench", "stability", "work_precision", "renders")
+STEPS = ("bench", "stability", "work_precision", "inverse", "renders")
+#: Arguments of the inverse problems' step by study size (benchmarks.inverse).
+INVERSE_SIZES = {"quick": ["--quick"], "default": [], "full": ["--steps", "300"]}
 
 
 def _check_skip(text: str, prog: str = PROG) -> set[str]:
@@ -197,7 +203,8 @@ def main(argv=None, prog: str = PROG) -> int:
     out.mkdir(parents=True, exist_ok=True)
     quick = ["--quick"] if args.quick else []
     start = time.perf_counter()
-    jsons = {step: out / f"{step}.json" for step in ("bench", "stability", "work_precision")}
+    jsons = {step: out / f"{step}.json"
+             for step in ("bench", "stability", "work_precision", "inverse")}
 
     def step(name, run):
         if name in skip:
@@ -217,6 +224,13 @@ def main(argv=None, prog: str = PROG) -> int:
     for name in ("bench", "stability", "work_precision"):
         step(name, lambda name=name: _ok(_step_main(name)(
             ["-o", str(jsons[name])] + sizes.get(name, quick))))
+    size = "quick" if args.quick else "full" if args.full else "default"
+    if "inverse" not in skip and importlib.util.find_spec("optax") is None:
+        print("[study] inverse: skipped (its optimiser, optax, is not installed: "
+              "pip install optax)")
+    else:
+        step("inverse", lambda: _ok(_step_main("inverse")(
+            ["--json", str(jsons["inverse"])] + INVERSE_SIZES[size])))
     images = step("renders", lambda: _render_scenes(args.quick)) or []
 
     from reports import report
@@ -241,6 +255,8 @@ def _step_main(step: str):
         from benchmarks.suite import main as step_main
     elif step == "stability":
         from benchmarks.stability import main as step_main
+    elif step == "inverse":
+        from benchmarks.inverse import main as step_main
     else:
         from benchmarks.work_precision import main as step_main
     return step_main

@@ -45,7 +45,7 @@ SLOW_FILES_FIRST = ("test_study.py", "test_structures.py", "test_bench.py",
                     "test_bvh_traversal.py", "test_octree.py")
 #: The files that read the quick study's results (:func:`quick_study`), run last: by the
 #: time the other worker reaches them, the study (test_study.py, first) has finished.
-READERS_LAST = ("test_work_precision.py",)
+READERS_LAST = ("test_work_precision.py", "test_inverse.py")
 
 #: The fast tier (``pytest -m "not slow"``, about two minutes on 2 cores): the modules
 #: that compile no traversal of a real mesh and render nothing. Every test of the other

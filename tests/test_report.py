@@ -29,7 +29,7 @@ from skimage import io
 import accel
 import jrt
 from reports import report
-from reports.report import ReportError, generate, num
+from reports.report import PNG_SIGNATURE, ReportError, generate, num
 
 ROOT = Path(__file__).resolve().parents[1]
 STRUCTURES = ["bvh", "kdtree", "grid"]
@@ -734,3 +734,62 @@ def test_structure_order_follows_the_registry():
     finally:
         accel.unregister("bvh_copy")
     assert structure_order() == (*builtin, "brute")
+
+
+# --- Worked inverse problems --------------------------------------------------------------
+
+
+def _inverse_record(quick: bool) -> dict:
+    """A record as ``python -m benchmarks.inverse --json`` writes it: the losses fall by
+    1e4 over 10 steps and the parameters move from the start to near the truth."""
+    steps = 10
+    fraction = np.linspace(1.0, 0.001, steps + 1)[:, None]
+
+    def problem(name, parameters, truth, start, **errors):
+        truth, start = np.asarray(truth), np.asarray(start)
+        values = truth + fraction * (start - truth)
+        return {"problem": name, "parameters": parameters, "truth": truth.tolist(),
+                "start": start.tolist(), "found": values[-1].tolist(),
+                "losses": np.geomspace(1.0, 1e-4, steps + 1).tolist(),
+                "values": values.tolist(), "seconds": 12.5, **errors}
+
+    return {"kind": "inverse", "command": "python -m benchmarks.inverse --json inverse.json",
+            "date": "2026-12-06", "width": 48, "height": 36, "steps": steps, "rate": 0.02,
+            "quick": quick, "problems": [
+                problem("glass", ["A", "B"], [1.50459, 0.004202], [1.44826, 0.003506],
+                        relative_error=[3.7e-5, 1.7e-4]),
+                problem("depth", ["tx", "ty", "tz", "scale"], [0, 0, 0, 1],
+                        [0.01, -0.01, 0.01, 1.05], translation_error_over_diagonal=2.1e-3,
+                        scale_error=2.3e-3)]}
+
+
+@pytest.mark.parametrize("quick", [False, True])
+def test_inverse_section(tmp_path, quick):
+    """The table holds each problem's start, truth and found values and its error as the
+    JSON has them, the figure is drawn with its command, and a quick run is marked."""
+    record = _inverse_record(quick)
+    path = tmp_path / "inverse.json"
+    path.write_text(json.dumps(record))
+    out = tmp_path / "report"
+    result = generate([path], out)
+    text = (out / "README.md").read_text()
+    rows = table(text, "Gradients: worked inverse problems", "found")
+    assert [r["problem"] for r in rows] == ["glass", "depth"]
+    for row, problem in zip(rows, record["problems"], strict=True):
+        found = [float(x) for x in row["found"].split(", ")]
+        assert found == pytest.approx(problem["found"], rel=1e-5, abs=1e-9)
+        assert row["steps"] == "10"
+    assert rows[0]["error"] == "A 0.0037 %, B 0.017 %"
+    assert rows[1]["error"] == "translation 0.21 % of the diagonal, scale 0.23 %"
+    figure = out / "figures" / "inverse.png"
+    assert figure in result["figures"] and figure.read_bytes()[:8] == PNG_SIGNATURE
+    assert "worked inverse problems" in text.split("\n\n")[1]  # named among the inputs
+    assert ("quick run (one problem, a small image)" in text) == quick
+
+
+def test_an_inverse_record_without_its_problems_is_refused(tmp_path):
+    path = tmp_path / "inverse.json"
+    path.write_text(json.dumps({"kind": "inverse", "problems": [{"problem": "glass"}]}))
+    with pytest.raises(ReportError, match=r"inverse.json: an inverse-problem result whose "
+                       r"\"problems\" is not a list of problems"):
+        generate([path], tmp_path / "report")

@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_study_reports_the_results_it_finds(tmp_path, capsys):
     shutil.copy(ROOT / "reports" / "camel" / "bench.json", tmp_path / "bench.json")
     assert main(["study", "-o", str(tmp_path),
-                 "--skip", "bench,stability,work_precision,renders"]) == 0
+                 "--skip", "bench,stability,work_precision,inverse,renders"]) == 0
     printed = capsys.readouterr().out
     assert "bench: skipped" in printed and "done" in printed
     readme = (tmp_path / "README.md").read_text()
@@ -35,7 +35,8 @@ def test_study_rejects_an_unknown_step(tmp_path):
 
 def test_study_with_nothing_to_report_says_so(tmp_path):
     with pytest.raises(SystemExit, match="no results"):
-        main(["study", "-o", str(tmp_path), "--skip", "bench,stability,work_precision,renders"])
+        main(["study", "-o", str(tmp_path), "--skip",
+              "bench,stability,work_precision,inverse,renders"])
 
 
 def test_study_rejects_an_unknown_structure(tmp_path, capsys):
@@ -59,7 +60,7 @@ def test_quick_study_end_to_end(quick_study, quick_study_structures):
 
     out, printed = quick_study
     print(printed[-2000:])
-    for step in ("bench", "stability", "work_precision", "renders"):
+    for step in ("bench", "stability", "work_precision", "inverse", "renders"):
         assert f"[study] {step}: " in printed and f"{step}: skipped" not in printed
     bench = json.loads((out / "bench.json").read_text())
     validate(bench)
@@ -73,7 +74,8 @@ def test_quick_study_end_to_end(quick_study, quick_study_structures):
     assert json.loads((out / "work_precision.json").read_text())["records"]
     readme = (out / "README.md").read_text()
     for section in ("## The structures side by side", "### Per-pixel cost",
-                    "## Error against run time", "## Numerical stability", "## Renders"):
+                    "## Error against run time", "## Gradients: worked inverse problems",
+                    "## Numerical stability", "## Renders"):
         assert section in readme, section
     links = [link.split(")")[0] for link in readme.split("](")[1:]]
     pngs = [link for link in links if link.endswith(".png")]
