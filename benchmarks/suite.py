@@ -82,6 +82,7 @@ from benchmarks.peers import (
 )
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 from jrt.interaction import face_forward, surface_interaction
+from jrt.scenes import GENERATED, SCENES, scene_mesh
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -154,9 +155,13 @@ def build_parser(add_help: bool = True, prog: str = PROG) -> argparse.ArgumentPa
                              "(default all)")
     parser.add_argument("--device", choices=tuple(DEVICE_PLATFORMS), default=None,
                         help="the JAX device to trace on (default: JAX's default backend)")
-    parser.add_argument("--mesh", default=None,
-                        help="camel, camel-19k or a mesh file (default camel; --quick "
-                             "camel-19k when present)")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--mesh", default=None,
+                       help="camel, camel-19k or a mesh file (default camel; --quick "
+                            "camel-19k when present)")
+    where.add_argument("--scene", dest="suite_scene", default=None, choices=SCENES,
+                       metavar="NAME", help="a scene of the study's suite (jrt.scenes: "
+                       f"{', '.join(SCENES)}); --quick takes its small size")
     parser.add_argument("--kernel", default="watertight", choices=tuple(jrt.KERNELS))
     parser.add_argument("--camera-size", type=_positive, default=None,
                         help=f"camera image side in pixels ({default('camera_size')})")
@@ -635,13 +640,21 @@ def _resolve(args) -> dict:
     params = {k: getattr(args, k) if getattr(args, k, None) is not None else v
               for k, v in DEFAULTS[mode].items()}
     mesh_arg = args.mesh
-    if mesh_arg is None:
+    scene = getattr(args, "suite_scene", None)
+    if scene == "camel":
+        mesh_arg = "camel-19k" if args.quick else "camel"
+    elif scene is not None:  # labelled "stadium", or "stadium-small" where it has two sizes
+        mesh_arg = scene + ("-small" if args.quick and scene in GENERATED else "")
+    elif mesh_arg is None:
         mesh_arg = "camel-19k" if args.quick and jrt.data.has_camel("camel-19k") else "camel"
     params["mesh"] = mesh_arg
     return params
 
 
 def _load(mesh_arg: str):
+    name = mesh_arg.removesuffix("-small")
+    if name in GENERATED:  # a generated scene of jrt.scenes, "-small" its small size
+        return scene_mesh(name, size="small" if mesh_arg.endswith("-small") else "full")
     try:
         if mesh_arg in jrt.data.MESHES:
             return jrt.load_mesh(jrt.camel_path(mesh_arg))
