@@ -175,16 +175,12 @@ def figure_size(record: dict) -> tuple[float, float]:
 
 
 def plot(record: dict, path: str) -> None:
-    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig = plt.figure(figsize=figure_size(record))
+    fig = Figure(figsize=figure_size(record))
     draw(record, fig)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     print(f"-> {path}")
 
 

@@ -319,7 +319,7 @@ def _shade_level(structure, scene: SceneArrays, rays: LevelRays, key, static: _S
             shadow_rays=out.shadow_rays + part.shadow_rays,
             status=out.status | part.status)
 
-    return _loop(0, live, n // chunk, body, out, static.differentiable)
+    return jax.lax.fori_loop(jnp.int32(0), live, body, out)
 
 
 def _loop(lower: int, upper, most: int, body, init, differentiable: bool):
