@@ -5,6 +5,11 @@ triangles of all the nodes still to split are binned together (``np.bincount`` a
 ``np.minimum.at`` keyed by node, axis and bin), the SAH sweep runs over all nodes as one
 array, and the triangles are partitioned in place by a stable rank, so the work is
 O(N) NumPy per level and O(N log N) in all, with no per-triangle (or per-node) Python loop.
+A node of at most ``bins`` triangles (most of them, deep in the tree) is swept over its
+triangles sorted by bin instead of over its bins: the same split for less work (see
+:func:`_sorted_splits`). Each level's rows (triangle, centroid, box) are carried to the
+next in the order the partition leaves them. On the camel this builds the same tree as
+the plain binned sweep 1.5x faster (0.48 against 0.32 s).
 
 Surface area heuristic (Goldsmith & Salmon 1987; MacDonald & Booth 1990), binned as in
 Wald, "On fast construction of SAH-based bounding volume hierarchies" (IEEE RT 2007):
@@ -158,23 +163,73 @@ def _segment_ids(counts: np.ndarray) -> np.ndarray:
     return np.repeat(np.arange(counts.shape[0]), counts)
 
 
-def _ranks_in_segments(flags: np.ndarray, seg: np.ndarray, seg_first: np.ndarray) -> np.ndarray:
-    """For each element, how many flagged elements precede it in its segment."""
+def _ranks_in_segments(flags: np.ndarray, offsets: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """For each element, how many flagged elements precede it in its segment (segments
+    of ``counts`` elements from ``offsets``, in order)."""
     c = np.cumsum(flags) - flags
-    return c - c[seg_first[seg]]
+    return c - np.repeat(c[offsets], counts)
 
 
 def _sah_splits(lo, hi, cent, seg, counts, cmin, cmax, node_area, bins, ct, ci):
-    """Best binned-SAH split of every segment: (cost, axis, bin) each [K], and the bins.
+    """Best binned-SAH split of every segment: (cost, axis, bin) each [K], and the bins
+    ``b`` [n, 3] of the level's rows.
+
+    A segment of at most ``bins`` triangles is swept over its sorted triangles
+    (:func:`_sorted_splits`, the segments grouped by size: up to 2, 4, 8, ...), a larger
+    one over its bins (:func:`_binned_splits`): both find the same split (the same cost,
+    axis and bin). Deep in the tree most segments hold a few triangles, where a sweep over
+    ``bins`` bins per segment did 4x the triangles' work (65 % of the camel's build).
+    """
+    k = counts.shape[0]
+    extent = cmax - cmin
+    scale = np.where(extent > 0, bins * (1 - 1e-9) / np.where(extent > 0, extent, 1), 0.0)
+    # (np.repeat over the segments: 2.5x faster than gathering through ``seg``.)
+    b = cent - np.repeat(cmin, counts, axis=0)
+    b *= np.repeat(scale, counts, axis=0)
+    b = np.clip(b, 0, bins - 1, out=b).astype(np.int64)
+    cost = np.full(k, np.inf)
+    axis = np.zeros(k, np.int64)
+    split_bin = np.zeros(k, np.int64)
+    # Segments by size: up to 2, 4, 8, ... triangles (padded to that many slots), and the
+    # ones above ``bins``.
+    widths = [w for w in (2, 4, 8, 16, 32, 64, 128, 256) if w < bins] + [bins]
+    group = np.searchsorted(np.asarray(widths), counts)
+    for g in np.unique(group):
+        part = group == g
+        if part.all():
+            args = (lo, hi, b, seg, counts, node_area)
+        else:
+            rows = part[seg]
+            sub_seg = (np.cumsum(part) - 1)[seg[rows]]
+            args = (lo[rows], hi[rows], b[rows], sub_seg, counts[part], node_area[part])
+        if g < len(widths):
+            found = _sorted_splits(*args, widths[g], bins, ct, ci)
+        else:
+            found = _binned_splits(*args, bins, ct, ci)
+        cost[part], axis[part], split_bin[part] = found
+    return cost, axis, split_bin, b
+
+
+def _split_costs(al, ar, nl, nr, node_area, ct, ci):
+    """The SAH cost of splits, inf where a side is empty or the cost is not finite.
+
+    ``al``, ``ar`` float32 half areas, ``nl``, ``nr`` int64 counts, ``node_area`` float64:
+    the same operations in the same types for both sweeps, so that they agree bit for bit.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cost = ct + ci * (al * nl + ar * nr) / node_area
+    cost[(nl == 0) | (nr == 0) | ~np.isfinite(cost)] = np.inf
+    return cost
+
+
+def _binned_splits(lo, hi, b, seg, counts, node_area, bins, ct, ci):
+    """Binned SAH (Wald 2007) of segments: per (axis, bin, segment) the triangle count
+    and box, swept from both ends; (cost, axis, bin) each [K].
 
     Arrays are laid out [axis, bin, segment, ...] so that the sweeps along the bins run
     over contiguous rows.
     """
     k = counts.shape[0]
-    extent = cmax - cmin
-    scale = np.where(extent > 0, bins * (1 - 1e-9) / np.where(extent > 0, extent, 1), 0.0)
-    b = ((cent - cmin[seg]) * scale[seg]).astype(np.int64)
-    np.clip(b, 0, bins - 1, out=b)
     # One key per (triangle, axis): (axis, bin, segment).
     key = ((np.arange(3)[None, :] * bins + b) * k + seg[:, None]).T.reshape(-1)
     n = np.bincount(key, minlength=3 * bins * k).reshape(3, bins, k)
@@ -193,12 +248,69 @@ def _sah_splits(lo, hi, cent, seg, counts, cmin, cmax, node_area, bins, ct, ci):
     al = _half_area_t(_sweep(np.minimum, blo)[:, :, :-1], _sweep(np.maximum, bhi)[:, :, :-1])
     ar = _half_area_t(_sweep(np.minimum, blo, reverse=True)[:, :, 1:],
                       _sweep(np.maximum, bhi, reverse=True)[:, :, 1:])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cost = ct + ci * (al * nl + ar * nr) / node_area[None, None, :]
-    cost[(nl == 0) | (nr == 0) | ~np.isfinite(cost)] = np.inf
+    cost = _split_costs(al, ar, nl, nr, node_area[None, None, :], ct, ci)
     flat = cost.reshape(3 * (bins - 1), k)
     best = np.argmin(flat, axis=0)
-    return flat[best, np.arange(k)], best // (bins - 1), best % (bins - 1), b
+    return flat[best, np.arange(k)], best // (bins - 1), best % (bins - 1)
+
+
+def _sorted_splits(lo, hi, b, seg, counts, node_area, width, bins, ct, ci):
+    """The binned SAH of segments of at most ``width`` (<= ``bins``) triangles, swept over
+    each segment's triangles sorted by bin instead of over the bins: (cost, axis, bin)
+    each [K].
+
+    A split between bins i and i+1 puts the triangles of bins <= i on the left, so the
+    distinct candidates are the prefixes of the sorted triangles that end where the bin
+    changes; the empty bins between two occupied ones repeat the cost of the first of
+    them, which the binned sweep's first minimum picks. So the candidate after sorted
+    triangle j, on axis a, is reported as bin ``b[j, a]``, and the first minimum over
+    (axis, j) is the binned sweep's (axis, bin). Boxes, areas and costs are computed in
+    the same types and order (:func:`_split_costs`): the same floats.
+    """
+    k = counts.shape[0]
+    offsets = np.cumsum(counts) - counts
+    slot = np.arange(seg.shape[0]) - offsets[seg]
+    # [K, width] slots, padded with bin ``bins`` (sorted last) and inverted boxes.
+    key = np.full((3, k, width), bins, np.int64)
+    key[:, seg, slot] = b.T
+    order = np.argsort(key, axis=2, kind="stable")
+    sorted_bins = np.take_along_axis(key, order, axis=2).transpose(0, 2, 1)  # [3, width, K]
+    row = np.full((k, width), -1, np.int64)
+    row[seg, slot] = np.arange(seg.shape[0])
+    lo_pad = np.concatenate([lo, np.full((1, 3), np.inf, np.float32)])  # row -1: the pad
+    hi_pad = np.concatenate([hi, np.full((1, 3), -np.inf, np.float32)])
+    nl = np.arange(1, width, dtype=np.int64)[:, None]
+    nr = counts[None, :] - nl
+    cost = np.empty((3, width - 1, k))
+    for a in range(3):
+        rows = np.take_along_axis(row, order[a], axis=1).T  # [width, K], pads last
+        left_lo, left_hi = _sweep_rows(np.minimum, lo_pad[rows]), _sweep_rows(
+            np.maximum, hi_pad[rows])
+        right_lo, right_hi = _sweep_rows(np.minimum, lo_pad[rows], reverse=True), \
+            _sweep_rows(np.maximum, hi_pad[rows], reverse=True)
+        c = _split_costs(_half_area(left_lo[:-1], left_hi[:-1]),
+                         _half_area(right_lo[1:], right_hi[1:]), nl, nr, node_area[None, :],
+                         ct, ci)
+        # Within one bin no plane separates the triangles (past the last one, nr <= 0).
+        c[sorted_bins[a, :-1] == sorted_bins[a, 1:]] = np.inf
+        cost[a] = c
+    flat = cost.reshape(3 * (width - 1), k)
+    best = np.argmin(flat, axis=0)
+    axis, j = best // (width - 1), best % (width - 1)
+    best_cost = flat[best, np.arange(k)]
+    # A segment with no finite split: the binned sweep's first candidate, axis 0, bin 0.
+    none = ~np.isfinite(best_cost)
+    return best_cost, np.where(none, 0, axis), np.where(none, 0, sorted_bins[axis, j, np.arange(k)])
+
+
+def _sweep_rows(op: np.ufunc, a: np.ndarray, reverse: bool = False) -> np.ndarray:
+    """Running ``op`` of ``a`` [width, ...] along its first axis, one contiguous row at a
+    time (from the last row, ``reverse``)."""
+    out = a.copy()
+    order = range(a.shape[0] - 1, -1, -1) if reverse else range(a.shape[0])
+    for previous, i in zip(order, order[1:], strict=False):
+        op(out[previous], out[i], out=out[i])
+    return out
 
 
 def _sweep(op: np.ufunc, a: np.ndarray, reverse: bool = False) -> np.ndarray:
@@ -254,21 +366,28 @@ def build(
     # exact box rounded outward.
     frame = frame_origin(tris)
     local = local_corners(tris, frame)
-    lo32, hi32 = float32_down(local.min(axis=1)), float32_up(local.max(axis=1))
-    lo, hi = lo32.astype(np.float64), hi32.astype(np.float64)
-    cent = 0.5 * (lo + hi)
+    # (Elementwise over the three corners: a reduction along the middle axis ran 5x slower.)
+    lo32 = float32_down(np.minimum(np.minimum(local[:, 0], local[:, 1]), local[:, 2]))
+    hi32 = float32_up(np.maximum(np.maximum(local[:, 0], local[:, 1]), local[:, 2]))
+    cent = 0.5 * (lo32.astype(np.float64) + hi32.astype(np.float64))
 
     order = np.arange(t_count)
     # Nodes in creation (breadth-first) order. Per node: box, range of rows, children.
     node_lo, node_hi, node_first, node_count, node_depth = [], [], [], [], []
-    # Active segments of this level: (node id, first row, count).
+    # Active segments of this level: (node id, first row, count, box), and their rows'
+    # triangles, centroids and boxes, in segment order. The rows are carried from level to
+    # level in the order the partition leaves them (one gather per level), not gathered
+    # again from the whole mesh through ``order``.
     seg_node = np.zeros(1 if t_count else 0, np.int64)
     seg_first = np.zeros_like(seg_node)
     seg_count = np.full_like(seg_node, t_count)
+    seg_lo = lo32.min(axis=0, initial=np.inf)[None]  # (no triangle: no segment)
+    seg_hi = hi32.max(axis=0, initial=-np.inf)[None]
+    tri, c, tlo, thi = order.copy(), cent, lo32, hi32
     next_node = 1 if t_count else 0
     if t_count:
-        node_lo.append(lo32.min(axis=0)[None])
-        node_hi.append(hi32.max(axis=0)[None])
+        node_lo.append(seg_lo)
+        node_hi.append(seg_hi)
         node_first.append(np.zeros(1, np.int64))
         node_count.append(np.full(1, t_count, np.int64))
         node_depth.append(np.zeros(1, np.int64))
@@ -281,48 +400,54 @@ def build(
         if depth >= MAX_DEPTH:
             forced_leaves += int(split.sum())
             break
-        seg_node, seg_first, seg_count = seg_node[split], seg_first[split], seg_count[split]
+        if not split.all():
+            kept = np.repeat(split, seg_count)
+            tri, c, tlo, thi = tri[kept], c[kept], tlo[kept], thi[kept]
+            seg_node, seg_first, seg_count = seg_node[split], seg_first[split], seg_count[split]
+            seg_lo, seg_hi = seg_lo[split], seg_hi[split]
         k = seg_node.shape[0]
         if k == 0:
             break
-        # Rows of the active segments, concatenated in segment order.
         seg = _segment_ids(seg_count)
         offsets = np.cumsum(seg_count) - seg_count
-        pos = np.arange(seg.shape[0]) - offsets[seg] + seg_first[seg]
-        tri = order[pos]
-        c, tlo, thi = cent[tri], lo[tri], hi[tri]
-        cmin = np.minimum.reduceat(c, offsets, axis=0)
-        cmax = np.maximum.reduceat(c, offsets, axis=0)
-        bmin = np.minimum.reduceat(tlo, offsets, axis=0)
-        bmax = np.maximum.reduceat(thi, offsets, axis=0)
+
+        def per_row(values, counts=seg_count):  # a segment's value on each of its rows
+            return np.repeat(values, counts, axis=0)
+
         if method == "sah":
+            cmin = np.minimum.reduceat(c, offsets, axis=0)
+            cmax = np.maximum.reduceat(c, offsets, axis=0)
+            node_area = _half_area(seg_lo.astype(np.float64), seg_hi.astype(np.float64))
             cost, axis, split_bin, b = _sah_splits(
-                lo32[tri], hi32[tri], c, seg, seg_count, cmin, cmax, _half_area(bmin, bmax),
-                bins, traversal_cost, intersection_cost)
+                tlo, thi, c, seg, seg_count, cmin, cmax, node_area, bins, traversal_cost,
+                intersection_cost)
             leaf_cost = intersection_cost * seg_count
             no_plane = ~np.isfinite(cost)
             make_leaf = (seg_count <= max_leaf_size) & (no_plane | (cost >= leaf_cost))
-            go_left = b[np.arange(seg.shape[0]), axis[seg]] <= split_bin[seg]
+            go_left = (np.take_along_axis(b, per_row(axis)[:, None], axis=1)[:, 0]
+                       <= per_row(split_bin))
             # No plane separates coincident centroids: split at the middle row.
-            mid = _ranks_in_segments(np.ones_like(seg), seg, offsets) < seg_count[seg] // 2
-            go_left = np.where(no_plane[seg], mid, go_left)
+            if no_plane.any():
+                mid = (np.arange(seg.shape[0]) - per_row(offsets)) < per_row(seg_count // 2)
+                go_left = np.where(per_row(no_plane), mid, go_left)
         else:
             make_leaf = np.zeros(k, bool)
-            axis = np.argmax(cmax - cmin, axis=1)
+            axis = np.argmax(np.maximum.reduceat(c, offsets, axis=0)
+                             - np.minimum.reduceat(c, offsets, axis=0), axis=1)
             # Sort each segment by its centroid along its own axis; left = lower half.
-            key = c[np.arange(seg.shape[0]), axis[seg]]
-            perm = np.lexsort((key, seg))
-            tri = tri[perm]
+            perm = np.lexsort((c[np.arange(seg.shape[0]), axis[seg]], seg))
+            tri, c, tlo, thi = tri[perm], c[perm], tlo[perm], thi[perm]
             go_left = np.arange(seg.shape[0]) - offsets[seg] < seg_count[seg] // 2
         # Leaves stay as they are; the others are partitioned (stable) into two children.
         splitting = ~make_leaf
-        go_left &= splitting[seg]
+        moving = per_row(splitting)
+        go_left &= moving
         n_left = np.bincount(seg, weights=go_left, minlength=k).astype(np.int64)
-        rank_left = _ranks_in_segments(go_left, seg, offsets)
-        rank_right = _ranks_in_segments(~go_left, seg, offsets)
-        new_pos = np.where(go_left, rank_left, n_left[seg] + rank_right) + seg_first[seg]
-        moving = splitting[seg]
-        order[new_pos[moving]] = tri[moving]
+        rank_left = _ranks_in_segments(go_left, offsets, seg_count)
+        slot = np.arange(seg.shape[0]) - per_row(offsets)
+        # Left rows first, then right ones, each in their order: a stable partition.
+        in_segment = np.where(go_left, rank_left, per_row(n_left) + slot - rank_left)
+        order[(in_segment + per_row(seg_first))[moving]] = tri[moving]
 
         parents = seg_node[splitting]
         first = seg_first[splitting]
@@ -331,6 +456,12 @@ def build(
         m = parents.shape[0]
         if m == 0:
             break
+        # The splitting segments' rows, partitioned, become the next level's rows.
+        kept_before = np.cumsum(np.where(splitting, seg_count, 0)) - np.where(
+            splitting, seg_count, 0)
+        source = np.empty(int(count.sum()), np.int64)
+        source[(in_segment + per_row(kept_before))[moving]] = np.flatnonzero(moving)
+        tri, c, tlo, thi = tri[source], c[source], tlo[source], thi[source]
         child_first = np.stack([first, first + nl], axis=1).reshape(-1)
         child_count = np.stack([nl, count - nl], axis=1).reshape(-1)
         child_ids = next_node + np.arange(2 * m)
@@ -338,10 +469,11 @@ def build(
         first_child_ids.append(child_ids[::2])
         next_node += 2 * m
         # Child boxes: exact float32 bounds of their rows.
-        rows = order[_segment_rows(child_first, child_count)]
         coff = np.cumsum(child_count) - child_count
-        node_lo.append(np.minimum.reduceat(lo32[rows], coff, axis=0))
-        node_hi.append(np.maximum.reduceat(hi32[rows], coff, axis=0))
+        seg_lo = np.minimum.reduceat(tlo, coff, axis=0)
+        seg_hi = np.maximum.reduceat(thi, coff, axis=0)
+        node_lo.append(seg_lo)
+        node_hi.append(seg_hi)
         node_first.append(child_first)
         node_count.append(child_count)
         depth += 1
