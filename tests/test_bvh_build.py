@@ -599,3 +599,31 @@ def test_sah_sweep_matches_numpy_accumulate(op, reverse):
     expected = (op.accumulate(a[:, :, ::-1], axis=2)[:, :, ::-1] if reverse
                 else op.accumulate(a, axis=2))
     assert np.array_equal(_sweep(op, a, reverse=reverse), expected)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("bins", [4, 16])
+def test_sorted_sweep_finds_the_binned_sweeps_split(seed, bins):
+    """A node of at most ``bins`` triangles is swept over its sorted triangles; that finds
+    the binned sweep's split (the same cost, axis and bin, bit for bit), also with
+    triangles sharing a bin, coincident centroids (no plane) and equal costs."""
+    from accel.bvh import _binned_splits, _sorted_splits
+
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(2, bins + 1, 300)
+    seg = np.repeat(np.arange(counts.size), counts)
+    # Coordinates on a coarse grid: shared bins, equal boxes and ties are common.
+    lo = (rng.integers(0, 6, (seg.size, 3)) * 0.5).astype(np.float32)
+    hi = lo + (rng.integers(0, 3, (seg.size, 3)) * 0.5).astype(np.float32)
+    b = rng.integers(0, bins, (seg.size, 3))
+    b[seg % 7 == 0] = 3 % bins  # whole nodes in one bin: no plane separates them
+    node_lo = np.minimum.reduceat(lo, np.cumsum(counts) - counts).astype(np.float64)
+    node_hi = np.maximum.reduceat(hi, np.cumsum(counts) - counts).astype(np.float64)
+    e = np.maximum(node_hi - node_lo, 0)
+    area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
+    binned = _binned_splits(lo, hi, b, seg, counts, area, bins, 0.5, 1.0)
+    found = _sorted_splits(lo, hi, b, seg, counts, area, bins, bins, 0.5, 1.0)
+    finite = np.isfinite(binned[0])
+    assert (~finite).any() and finite.any()
+    for ours, theirs in zip(found, binned, strict=True):  # cost, axis, bin
+        assert np.array_equal(ours, theirs)
