@@ -61,11 +61,17 @@ by dilating the non-empty cells one cell at a time (three 1-D passes a level).
 
 **Build** (vectorised NumPy, O(R log R) for R references, plus O(max_skip * cells)): per
 axis the widened cell intervals; each triangle's candidate cells are the ranges of cells
-whose widened interval meets the triangle's bounds on each axis (``np.searchsorted``); the
-candidate (triangle, cell) pairs are enumerated with ``np.repeat`` over those ranges and
-tested with one separating-axis call (in chunks of 2^20 pairs, to bound memory; a triangle
-with a single candidate cell lies in it and skips the test); the surviving pairs are
-sorted by cell (stable, so a cell lists its triangles in row order).
+whose widened interval meets the triangle's bounds on each axis (``np.searchsorted``),
+narrowed slab by slab (``_candidates``): per x slab of cells the part of the triangle
+inside the slab bounds its y and z cells, and per (x, y) column its part inside the y slab
+bounds the z cells further, so a long thin triangle gets about the cells it crosses, not
+every cell of its bounding box (the slivers scene, 1,000 needles: 421k candidates in the
+boxes, 0.6 s; 21k, 0.01 s, now; 50,000 needles: 738M, out of memory; 3.9M now). The
+candidate (triangle, cell) pairs, enumerated with ``np.repeat`` over those ranges, are
+tested with the separating-axis test (``overlap_sat``: ``triangles_overlap_boxes``'s decisions on
+component rows, an order of magnitude faster; a triangle with a single candidate cell
+lies in it and skips the test); one sort of the keys (cell, triangle row) orders the
+surviving pairs by cell, rows ascending within a cell.
 
 **Layout** (``layout`` is empty: the resolution and the box travel in ``grid``, so every
 grid of the same array shapes shares one compiled traversal):
@@ -130,7 +136,6 @@ from accel.geometry import (
     degenerate_mask,
     local_frame,
     triangle_vertices,
-    triangles_overlap_boxes,
     widen_boxes,
 )
 from accel.registry import StructureKind, world_planes
@@ -151,6 +156,79 @@ GRID_FLOATS = 16
 #: Candidate (triangle, cell) pairs tested per separating-axis call (bounds the memory of
 #: the float64 temporaries to a few hundred MB).
 _CHUNK = 1 << 20
+#: Pairs per block of the separating-axis test (``overlap_sat``): small enough for its
+#: temporaries (8 bytes a pair each) to stay in a core's cache.
+_SAT_BLOCK = 1 << 15
+
+
+def overlap_sat(corners: np.ndarray, lo, hi) -> np.ndarray:
+    """bool [K]: ``accel.geometry.triangles_overlap_boxes`` on component rows, faster.
+
+    ``corners`` float64 [9, K] (row ``3 i + a``: corner i's coordinate on axis a), ``lo``
+    and ``hi`` three float64 [K] rows (or [3, K]). The same separating axes (the box's
+    faces, the triangle's normal, the nine box-edge x triangle-edge crosses) with the same
+    float64 operations in the same order: ``unit_a x e`` has one zero and two signed
+    components of ``e``, so its projections are two products, and the sums run in
+    ``np.sum``'s order, so every decision is ``triangles_overlap_boxes``'s. Faster because
+    it works on contiguous [K] rows (no [K, 3] reductions, ``np.cross`` or ``einsum``), and
+    each axis is tested only on the pairs no earlier axis separated (the answer is the
+    AND of all the axes, so the order of elimination does not change it). The pairs go
+    through in blocks of ``_SAT_BLOCK``, whose few dozen temporaries stay in the cache
+    (on the camel's octree this halved the time of the test).
+    """
+    out = np.empty(corners.shape[1], bool)
+    for start in range(0, corners.shape[1], _SAT_BLOCK):
+        part = slice(start, start + _SAT_BLOCK)
+        out[part] = _overlap_block(corners[:, part], [b[part] for b in lo],
+                                   [b[part] for b in hi])
+    return out
+
+
+def _overlap_block(corners, lo, hi):
+    """``overlap_sat`` on one block."""
+    k = corners.shape[1]
+    centre = [0.5 * (lo[a] + hi[a]) for a in range(3)]
+    half = [0.5 * (hi[a] - lo[a]) for a in range(3)]
+    v = [corners[3 * i + a] - centre[a] for i in range(3) for a in range(3)]
+    # 1. The box's faces: the triangle's bounds against the box's.
+    keep = np.ones(k, bool)
+    for a in range(3):
+        keep &= np.minimum(np.minimum(v[a], v[3 + a]), v[6 + a]) <= half[a]
+        keep &= np.maximum(np.maximum(v[a], v[3 + a]), v[6 + a]) >= -half[a]
+    alive = np.flatnonzero(keep)
+    v = [c[alive] for c in v]
+    hx, hy, hz = (h[alive] for h in half)
+    # 2. The triangle's normal, e0 x e1 (np.cross's products and order).
+    e = [[v[3 * ((j + 1) % 3) + a] - v[3 * j + a] for a in range(3)] for j in range(3)]
+    (e0x, e0y, e0z), (e1x, e1y, e1z) = e[0], e[1]
+    nx, ny, nz = e0y * e1z - e0z * e1y, e0z * e1x - e0x * e1z, e0x * e1y - e0y * e1x
+    radius = np.abs(nx) * hx + np.abs(ny) * hy + np.abs(nz) * hz
+    offset = nx * v[0] + ny * v[1] + nz * v[2]
+    ok = np.abs(offset) <= radius
+    # 3. unit_a x e_j: x: (0, -ez, ey); y: (ez, 0, -ex); z: (-ey, ex, 0). The pairs still
+    # undecided are gathered after each group of three axes (and after the normal's).
+    for a in range(3):
+        sel = np.flatnonzero(ok)
+        alive, ok = alive[sel], ok[sel]
+        v = [c[sel] for c in v]
+        e = [[c[sel] for c in ej] for ej in e]
+        hx, hy, hz = hx[sel], hy[sel], hz[sel]
+        for j in range(3):
+            ex, ey, ez = e[j]
+            if a == 0:
+                p = [ey * v[3 * i + 2] - ez * v[3 * i + 1] for i in range(3)]
+                r = np.abs(ez) * hy + np.abs(ey) * hz
+            elif a == 1:
+                p = [ez * v[3 * i] - ex * v[3 * i + 2] for i in range(3)]
+                r = np.abs(ez) * hx + np.abs(ex) * hz
+            else:
+                p = [ex * v[3 * i + 1] - ey * v[3 * i] for i in range(3)]
+                r = np.abs(ey) * hx + np.abs(ex) * hy
+            ok &= np.minimum(np.minimum(p[0], p[1]), p[2]) <= r
+            ok &= np.maximum(np.maximum(p[0], p[1]), p[2]) >= -r
+    keep[:] = False
+    keep[alive[ok]] = True
+    return keep
 
 
 def _check_params(density, max_resolution, max_skip):
@@ -282,6 +360,100 @@ def _candidate_ranges(tri_lo, tri_hi, intervals):
     return first, np.maximum(last, first)
 
 
+def _expand(first, last):
+    """(row, value) for every value in ``first[row] .. last[row]`` (rows in order, values
+    ascending; an empty range, ``last < first``, gives none): int64 [sum of widths] each."""
+    width = np.maximum(last - first + 1, 0)
+    row = np.repeat(np.arange(width.shape[0]), width)
+    value = np.arange(row.shape[0]) - np.repeat(np.cumsum(width) - width, width) + first[row]
+    return row, value
+
+
+def _slab_ranges(v, rows, axis, s0, s1, intervals, first, last, eps):
+    """Per row, the cells the triangle's part inside the slab ``s0 <= x_axis <= s1`` can
+    meet on the two other axes: ((axis b, first, last), (axis c, first, last)).
+
+    ``v`` float64 [9, T] (row ``3 i + a``: corner i, axis a); ``rows`` the triangle of each
+    row; ``first``, ``last`` [T, 3] the triangle's own candidate ranges, which bound the
+    result. The part of a triangle inside a slab is a convex polygon whose corners are the
+    triangle's corners inside the slab and the points where its edges cross the slab's two
+    planes (Sutherland-Hodgman clipping); its bounds on b and c are those points'. They
+    are computed in float64 (a crossing ``p + (s - p_a) / (q_a - p_a) (q - p)`` is off by
+    a few 2^-53 of the coordinates) and widened by ``eps``, far more than that, so they
+    hold every cell the exact separating-axis test can accept; that test still decides
+    each candidate, so the references are those that testing every cell of the
+    triangle's bounding box gives.
+    """
+    out = []
+    others = [b for b in range(3) if b != axis]
+    inf = np.full(rows.shape[0], np.inf)
+    lo = {b: inf.copy() for b in others}
+    hi = {b: -inf for b in others}
+    va = [v[3 * i + axis][rows] for i in range(3)]
+    vb = {b: [v[3 * i + b][rows] for i in range(3)] for b in others}
+    for i in range(3):
+        inside = (va[i] >= s0) & (va[i] <= s1)
+        for b in others:
+            lo[b] = np.where(inside, np.minimum(lo[b], vb[b][i]), lo[b])
+            hi[b] = np.where(inside, np.maximum(hi[b], vb[b][i]), hi[b])
+        j = (i + 1) % 3
+        pa, qa = va[i], va[j]
+        d = qa - pa
+        safe = np.where(d == 0, 1.0, d)
+        for s in (s0, s1):
+            cross = (np.minimum(pa, qa) <= s) & (np.maximum(pa, qa) >= s) & (d != 0)
+            t = np.clip((s - pa) / safe, 0.0, 1.0)
+            for b in others:
+                x = vb[b][i] + t * (vb[b][j] - vb[b][i])
+                lo[b] = np.where(cross, np.minimum(lo[b], x), lo[b])
+                hi[b] = np.where(cross, np.maximum(hi[b], x), hi[b])
+    for b in others:
+        wlo, whi = intervals[b]
+        n = wlo.shape[0]
+        f = np.searchsorted(whi, lo[b] - eps, side="left")
+        g = np.searchsorted(wlo, hi[b] + eps, side="right") - 1
+        # No point (rounding at a touching slab): the triangle's own range, safely.
+        empty = lo[b] > hi[b]
+        f = np.where(empty, first[rows, b], np.clip(np.maximum(f, first[rows, b]), 0, n - 1))
+        g = np.where(empty, last[rows, b], np.minimum(g, last[rows, b]))
+        out.append((b, f, g))
+    return out
+
+
+def _candidates(v, first, last, intervals, eps):
+    """(triangle, ix, iy, iz) of the candidate cells, by triangle: int64 each.
+
+    Not every cell of a triangle's bounding box: per x slab of cells the triangle's part
+    in that slab (``_slab_ranges``) bounds its y and z cells, and per (x, y) column its
+    part in the y slab bounds the z cells further. A long thin triangle (the slivers
+    scene's needles) then gets about the cells it crosses, not the cube of cells around
+    it; a triangle one cell wide on x (or y) keeps its bounds there, which clipping would
+    not narrow.
+    """
+    wide = last > first  # [T, 3]: more than one candidate cell on the axis
+    tri, ix = _expand(first[:, 0], last[:, 0])
+    f = first[tri]
+    g = last[tri]
+    clip = np.flatnonzero((wide[:, 0] & (wide[:, 1] | wide[:, 2]))[tri])
+    if clip.size:
+        wlo, whi = intervals[0]
+        for b, lo, hi in _slab_ranges(v, tri[clip], 0, wlo[ix[clip]], whi[ix[clip]],
+                                      intervals, first, last, eps):
+            f[clip, b], g[clip, b] = lo, hi
+    row, iy = _expand(f[:, 1], g[:, 1])
+    tri, ix = tri[row], ix[row]
+    fz, gz = f[row, 2], g[row, 2]
+    clip = np.flatnonzero(wide[:, 1][tri] & (gz > fz))
+    if clip.size:
+        wlo, whi = intervals[1]
+        (_, lo, hi), = (r for r in _slab_ranges(v, tri[clip], 1, wlo[iy[clip]],
+                                                 whi[iy[clip]], intervals, first, last, eps)
+                        if r[0] == 2)
+        fz[clip], gz[clip] = np.maximum(fz[clip], lo), np.minimum(gz[clip], hi)
+    row, iz = _expand(fz, gz)
+    return tri[row], ix[row], iy[row], iz
+
+
 def _references(local: np.ndarray, row: np.ndarray):
     """(cell, triangle row) of every reference, sorted by cell then row: int64 [R] each.
 
@@ -293,32 +465,28 @@ def _references(local: np.ndarray, row: np.ndarray):
     if t_count == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     tri64 = np.asarray(local, np.float64)
+    v = np.ascontiguousarray(tri64.reshape(t_count, 9).T)
     intervals = widened_intervals(row)
-    first, last = _candidate_ranges(tri64.min(axis=1), tri64.max(axis=1), intervals)
-    width = last - first + 1
-    count = width.prod(axis=1)
-    tri = np.repeat(np.arange(t_count), count)
-    offsets = np.cumsum(count) - count
-    local = np.arange(tri.shape[0]) - offsets[tri]
-    wx, wy = width[tri, 0], width[tri, 1]
-    ix = first[tri, 0] + local % wx
-    rest = local // wx
-    iy = first[tri, 1] + rest % wy
-    iz = first[tri, 2] + rest // wy
+    c = [v[3 * i:3 * i + 3] for i in range(3)]  # [3, T] rows: faster than [T, 3, 3] min
+    first, last = _candidate_ranges(np.minimum(np.minimum(c[0], c[1]), c[2]).T,
+                                    np.maximum(np.maximum(c[0], c[1]), c[2]).T, intervals)
+    # 2^-30 of the box's magnitude: far above the float64 rounding of a slab crossing,
+    # far below the cells.
+    eps = 2.0**-30 * float(np.abs(row[0:6].astype(np.float64)).max())
+    tri, ix, iy, iz = _candidates(v, first, last, intervals, eps)
     # A triangle whose bounds meet a single widened cell lies in that cell: no test.
     keep = np.ones(tri.shape[0], bool)
-    multi = np.flatnonzero(count[tri] > 1)
+    multi = np.flatnonzero((last > first).any(axis=1)[tri])
     for start in range(0, multi.shape[0], _CHUNK):
         sel = multi[start:start + _CHUNK]
-        box_lo = np.stack([intervals[a][0][c] for a, c in enumerate((ix[sel], iy[sel],
-                                                                     iz[sel]))], axis=1)
-        box_hi = np.stack([intervals[a][1][c] for a, c in enumerate((ix[sel], iy[sel],
-                                                                     iz[sel]))], axis=1)
-        keep[sel] = triangles_overlap_boxes(tri64[tri[sel]], box_lo, box_hi)
-    cell = (ix + res[0] * (iy + res[1] * iz))[keep]
-    tri = tri[keep]
-    order = np.argsort(cell, kind="stable")  # rows ascending within a cell
-    return cell[order], tri[order]
+        t, c = tri[sel], (ix[sel], iy[sel], iz[sel])
+        keep[sel] = overlap_sat(v[:, t], [intervals[a][0][c[a]] for a in range(3)],
+                                [intervals[a][1][c[a]] for a in range(3)])
+    # Sorted by cell, rows ascending within a cell: one sort of the unique keys
+    # cell * T + row (faster than a stable argsort and two gathers).
+    key = np.sort((ix + res[0] * (iy + res[1] * iz))[keep] * t_count + tri[keep])
+    cell = key // t_count
+    return cell, key - cell * t_count
 
 
 def build(
