@@ -80,6 +80,7 @@ from accel.plane_tree import (
     check_params,
     default_max_depth,
     half_area,
+    node_chunks,
     split_cost,
     tree_triangles,
 )
@@ -181,9 +182,14 @@ def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, 
                        axis=1)[:, :, None]
 
     def side_areas(c):  # c [K, C, O] -> areas of both sides over the node's
-        if axes_only:  # the kd-tree's boxes
-            return (((c - box_lo[:, :, None]) * perimeter + product) / area,
-                    ((box_hi[:, :, None] - c) * perimeter + product) / area)
+        if axes_only:  # the kd-tree's boxes (in place: these are the largest arrays)
+            left = c - box_lo[:, :, None]
+            right = box_hi[:, :, None] - c
+            for e in (left, right):
+                e *= perimeter
+                e += product
+                e /= area
+            return left, right
         left, right = [], []
         for i in range(3):
             a, d = inv[:, :, i, None], size[:, :, i, None]
@@ -197,27 +203,34 @@ def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, 
     width = (ehi - elo) / bins
     scale = np.where(width > 0, 1.0 / np.where(width > 0, width, 1.0), 0.0)
     total = c_count * bins * k
-    base = np.arange(c_count)[None, :] * (bins * k) + seg[:, None]  # [R, C]
-    at, to = elo.astype(pmin.dtype)[seg], (scale * k).astype(pmin.dtype)[seg]
+    # Keys (node, normal, bin): a node's bins are contiguous, so the prefix sums run along
+    # the last axis (far faster than along a middle one, or a transposed view).
+    base = np.repeat((np.arange(k)[:, None] * c_count + np.arange(c_count)) * bins, counts,
+                     axis=0)  # [R, C]
+    # (References are sorted by node: repeat is a gather without an index.)
+    at = np.repeat(elo.astype(pmin.dtype), counts, axis=0)
+    to = np.repeat(scale.astype(pmin.dtype), counts, axis=0)
 
-    def bin_counts(p):  # references per (normal, bin, node) of p's bin, as one bincount
-        key = p - at
-        key *= to
-        key = np.clip(key, 0, (bins - 1) * k, out=key).astype(np.int64)
-        key -= key % k  # whole bins of k keys
+    def bin_counts(p):  # references per (node, normal, bin) of p's bin, as one bincount
+        f = p - at
+        f *= to
+        np.clip(f, 0, bins - 1, out=f)  # then truncation is floor
+        key = f.astype(np.intp)
         key += base
-        return np.bincount(key.ravel(), minlength=total)
+        return np.bincount(key.ravel(), minlength=total).reshape(k, c_count, bins)
 
-    starts, ends = bin_counts(pmin), bin_counts(pmax)
-    starts = starts.reshape(c_count, bins, k).transpose(2, 0, 1)  # [K, C, bins]
-    ends = ends.reshape(c_count, bins, k).transpose(2, 0, 1)
-    n_left = np.cumsum(starts[:, :, :-1], axis=2)  # boundaries 1 .. bins-1
-    n_right = np.cumsum(ends[:, :, ::-1], axis=2)[:, :, ::-1][:, :, 1:]
+    # Boundary j (1 .. bins-1): N_L starts in bins < j, N_R = N - ends in bins < j.
+    n_left = np.cumsum(bin_counts(pmin)[:, :, :-1], axis=2)
+    n_right = counts[:, None, None] - np.cumsum(bin_counts(pmax)[:, :, :-1], axis=2)
     cand_c = elo[:, :, None] + np.arange(1, bins) * width[:, :, None]  # [K, C, bins-1]
-    p_left, p_right = side_areas(cand_c)
-    cost = ct + ci * (p_left * n_left + p_right * n_right)
-    cost[~((width > 0)[:, :, None] & (cand_c > n_lo[:, :, None])
-           & (cand_c < n_hi[:, :, None]) & ~flat[:, None, None])] = np.inf
+    cost, p_right = side_areas(cand_c)
+    cost *= n_left  # ct + ci * (A_L N_L + A_R N_R) / A, in place
+    p_right *= n_right
+    cost += p_right
+    cost *= ci
+    cost += ct
+    cost[(cand_c <= n_lo[:, :, None]) | (cand_c >= n_hi[:, :, None])] = np.inf
+    cost[~(width > 0) | flat[:, None]] = np.inf
     # Empty-space cuts, and the triangles' own planes, as extra candidates [K, C, 3].
     gap_lo = EMPTY_CUT_GAP * (largest + (elo - n_lo))
     gap_hi = EMPTY_CUT_GAP * (largest + (n_hi - ehi))
@@ -250,10 +263,13 @@ def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, 
 
 
 def _project(tri, n):
-    """Extent (min, max) of triangles [R, 3, 3] along normals [R, C, 3]: [R, C] each."""
-    p = [tri[:, v, None, 0] * n[:, :, 0] + tri[:, v, None, 1] * n[:, :, 1]
-         + tri[:, v, None, 2] * n[:, :, 2] for v in range(3)]
-    return np.minimum(np.minimum(p[0], p[1]), p[2]), np.maximum(np.maximum(p[0], p[1]), p[2])
+    """Extent (min, max) of triangles along normals, [R, C] each: ``tri`` [3 vertices,
+    3 axes, R] and ``n`` [3 axes, C, R] or [3, C, 1] (the same normals for all), both
+    coordinate-major, so that every product runs over contiguous rows."""
+    p = [tri[v, 0] * n[0] + tri[v, 1] * n[1] + tri[v, 2] * n[2] for v in range(3)]
+    lo = np.minimum(np.minimum(p[0], p[1]), p[2]).T
+    hi = np.maximum(np.maximum(p[0], p[1]), p[2]).T
+    return lo, hi
 
 
 def build(
@@ -300,7 +316,8 @@ def build(
         tri_normals = np.zeros((0, 3))
     # The fixed orientations (axes, diagonals) and every triangle's extent along them.
     fixed = _as_float32(np.concatenate([AXES, DIAGONALS]))
-    fixed_min, fixed_max = _project(tri64, np.broadcast_to(fixed, (t_count, 7, 3)))
+    tri_t = np.ascontiguousarray(tri64.transpose(1, 2, 0))  # [vertex, axis, triangle]
+    fixed_min, fixed_max = map(np.ascontiguousarray, _project(tri_t, fixed.T[:, :, None]))
     # The split search bins float32 copies (half the memory traffic); the sides are
     # decided in float64.
     fixed_min32, fixed_max32 = fixed_min.astype(np.float32), fixed_max.astype(np.float32)
@@ -344,7 +361,9 @@ def build(
                                        tri_normals[sampled]], axis=1)
                 exact = np.full(cand.shape[:2], np.nan)
                 exact[:, 7:] = (tri_normals[sampled] * tri64[sampled, 0]).sum(axis=2)
-                t_min, t_max = _project(tri64[g_tri], tri_normals[sampled][g_seg])
+                t_min, t_max = _project(
+                    tri_t[:, :, g_tri],
+                    np.repeat(tri_normals[sampled].transpose(2, 1, 0), g_counts, axis=2))
                 pmin = np.concatenate([fixed_min32[g_tri], t_min], axis=1, dtype=np.float32)
                 pmax = np.concatenate([fixed_max32[g_tri], t_max], axis=1, dtype=np.float32)
                 kind_of = np.array([0, 0, 0, 1, 1, 1, 1] + [2] * triangle_planes)
@@ -353,9 +372,15 @@ def build(
                 exact = np.full((nodes.size, 3), np.nan)
                 pmin, pmax = fixed_min32[g_tri, :3], fixed_max32[g_tri, :3]
                 kind_of = np.zeros(3, np.int64)
-            g_cost, g_pick, g_offset = _best_planes(
-                pmin, pmax, extent[g_tri], g_seg, counts[nodes], cand, exact,
-                levels.lo[nodes], levels.hi[nodes], bins, ct, ci, bonus)
+            g_counts, g_ext = counts[nodes], extent[g_tri]
+            g_lo, g_hi = levels.lo[nodes], levels.hi[nodes]
+            g_cost, g_offset = np.empty(nodes.size), np.empty(nodes.size)
+            g_pick = np.empty(nodes.size, np.int64)
+            for first, end, r0, r1 in node_chunks(g_counts):
+                g_cost[first:end], g_pick[first:end], g_offset[first:end] = _best_planes(
+                    pmin[r0:r1], pmax[r0:r1], g_ext[r0:r1], g_seg[r0:r1] - first,
+                    g_counts[first:end], cand[first:end], exact[first:end],
+                    g_lo[first:end], g_hi[first:end], bins, ct, ci, bonus)
             cost[nodes], offset[nodes] = g_cost, g_offset
             normal[nodes] = cand[np.arange(nodes.size), g_pick]
             kind[nodes] = kind_of[g_pick]
@@ -385,7 +410,7 @@ def build(
         p_min, p_max = fixed_min[rtri[sel], which[r]], fixed_max[rtri[sel], which[r]]
         own = np.flatnonzero(which[r] < 0)
         if own.size:
-            t_min, t_max = _project(tri64[rtri[sel[own]]], n[r[own]][:, None, :])
+            t_min, t_max = _project(tri_t[:, :, rtri[sel[own]]], n[r[own]].T[:, None, :])
             p_min[own], p_max[own] = t_min[:, 0], t_max[:, 0]
         delta = reference_margin(size_n[r], extent[rtri[sel]])
         member = [p_min <= c[r] + delta, p_max >= c[r] - delta]

@@ -19,9 +19,11 @@ for a leaf. A node becomes a leaf when no candidate beats the leaf, when it hold
 carries its triangle clipped to the node's (widened, below) cell, a convex polygon of at
 most 9 vertices kept in a pool, and that polygon's bounding box; the SAH counts N_L and
 N_R from those boxes, and a reference that straddles the chosen plane has its polygon
-clipped by the plane (Sutherland & Hodgman 1974) once for each child, which is the
+clipped by the plane (Sutherland & Hodgman 1974) once for each child whose widened bound
+its box reaches past (elsewhere the clip would return it unchanged), which is the
 triangle clipped to the child's cell, since a cell is the intersection of the half-spaces
 above it. A long triangle is thus neither counted nor referenced where it does not reach.
+The polygons are clipped in groups of equal vertex count, on only as many slots.
 
 **Binned** (as accel.bvh, and Wald's binned kd-tree variant, Shevtsov, Soupikov & Kapustin,
 "Highly parallel fast kd-tree construction", Eurographics 2007): the candidates along an
@@ -31,8 +33,9 @@ geometry (by 2^-14 of the room cut off plus the node's largest triangle), where 
 off empty space: a reference whose box
 merely touched such a plane would otherwise go to the empty side as well (references are
 decided against widened cells, below). N_L counts the references whose box starts in a
-lower bin, N_R those ending in a higher one (``np.bincount`` over all nodes of a level, by
-node, axis and bin), so a level costs O(references) NumPy work, with no per-node loop.
+lower bin, N_R those ending in a higher one (``np.bincount`` over the nodes of a level, by
+axis, node and bin, ``accel.plane_tree.SEARCH_CHUNK`` nodes at a time), so a level costs
+O(references + nodes x bins) NumPy work, with no per-node loop.
 
 **Which side a reference goes to.** For exact traversal a triangle must be referenced by
 every leaf whose cell, widened by its margin, it overlaps: ``CELL_MARGIN`` (2^-16) of the
@@ -96,6 +99,7 @@ from accel.plane_tree import (
     check_params,
     default_max_depth,
     half_area,
+    node_chunks,
     split_cost,
     tree_triangles,
 )
@@ -115,45 +119,87 @@ __all__ = ["DEFAULT_BINS", "DEFAULT_EMPTY_BONUS", "DEFAULT_INTERSECTION_COST",
            "clip_polygons", "polygon_bounds", "stored_planes"]
 
 
+def _clip_uniform(v: np.ndarray, axis: np.ndarray, bound: np.ndarray, upper: bool):
+    """Polygons ``v`` [K, c, 3] of exactly c vertices each clipped to a half-space (as
+    :func:`clip_polygons`): the new vertices [K, 2c, 3] with a mask of those kept, in order.
+
+    The next vertex of vertex i is i + 1 mod c, so a polygon of c vertices needs no mask
+    of used slots; candidate 2i is vertex i (kept when inside), 2i + 1 the crossing of edge
+    (i, i + 1) with the plane (when the edge crosses it strictly).
+    """
+    k, c = v.shape[0], v.shape[1]
+    ax = axis[:, None, None]
+    coord = np.take_along_axis(v, ax, axis=2)[:, :, 0]
+    d = coord - bound[:, None] if upper else bound[:, None] - coord
+    vn = np.roll(v, -1, axis=1)
+    dn = np.roll(d, -1, axis=1)
+    keep_p = d <= 0
+    cross = ((d < 0) & (dn > 0)) | ((d > 0) & (dn < 0))
+    t = d / np.where(cross, d - dn, 1.0)
+    x = v + t[:, :, None] * (vn - v)
+    # A crossing gets the plane's coordinate exactly (a polygon flat on an axis stays flat).
+    np.put_along_axis(x, ax, np.broadcast_to(bound[:, None, None], (k, c, 1)), axis=2)
+    keep = np.stack([keep_p, cross], axis=2).reshape(k, 2 * c)
+    cand = np.stack([v, x], axis=2).reshape(k, 2 * c, 3)
+    return cand, keep
+
+
+def _clip_groups(fetch, count, axis, bound, upper, slots=POLYGON_SLOTS):
+    """Polygons of ``count`` vertices each clipped as :func:`clip_polygons` says, in groups
+    of equal vertex count c, on c slots (2c candidates) rather than all ``slots``: most are
+    triangles and quadrilaterals. ``fetch(positions, c)``: the group's vertices [G, c, 3].
+
+    ``count`` must not change while the groups are taken. Yields per group: its positions
+    in ``count``, the clipped polygons [G, W, 3] (W = min(2c,
+    slots), unused ones repeating vertex 0), their counts and bounding boxes (lo, hi).
+    """
+    for c in np.unique(count):
+        group = np.flatnonzero(count == c)
+        cand, keep = _clip_uniform(fetch(group, c), axis[group], bound[group], upper)
+        n = keep.sum(axis=1)
+        fits = n <= slots
+        if not fits.all():  # (rounding only) the unclipped polygon: every vertex kept
+            keep[~fits] = np.arange(2 * c) % 2 == 0
+            n = np.where(fits, n, c)
+        width = min(2 * int(c), slots)
+        g = group.size
+        first = np.argmax(keep, axis=1)
+        pad = cand[np.arange(g), first]  # the first vertex kept fills the rest
+        pos = np.cumsum(keep, axis=1) - 1
+        r, j = np.nonzero(keep)
+        res = np.broadcast_to(pad[:, None], (g, width, 3)).copy()
+        res[r, pos[r, j]] = cand[r, j]
+        # Bounds, reduced pairwise over the slots (a reduction over a short middle axis is
+        # slow); the unused slots repeat a kept vertex.
+        lo, hi = res[:, 0].copy(), res[:, 0].copy()
+        for i in range(1, width):
+            np.minimum(lo, res[:, i], out=lo)
+            np.maximum(hi, res[:, i], out=hi)
+        yield group, res, n, lo, hi
+
+
 def clip_polygons(poly: np.ndarray, count: np.ndarray, axis: np.ndarray, bound: np.ndarray,
                   upper: bool):
     """Convex polygons k clipped to the half-space ``x[axis[k]] <= bound[k]`` (``upper``) or
     ``>= bound[k]`` (Sutherland & Hodgman 1974), float64.
 
-    ``poly`` [K, P, 3] holds ``count[k]`` vertices in order, the unused slots copies of
-    vertex 0 (as the result). Returns the new (poly, count).
+    ``poly`` [K, P, 3] holds ``count[k]`` vertices in order (the slots past them are not
+    read). Returns the new (poly, count), the unused slots copies of vertex 0.
     A vertex on the plane is kept and no crossing is added next to it, so clipping never
     duplicates vertices; a crossing gets the plane's coordinate exactly, so a polygon flat
     on an axis stays flat. A polygon that would need more than P vertices (a triangle
     clipped to a box has at most 9; only rounding could add more) is returned unclipped,
     which is conservative.
     """
-    k, slots = poly.shape[0], poly.shape[1]
-    rows = np.arange(k)[:, None]
-    index = np.arange(slots)[None, :]
-    coord = poly[rows, index, axis[:, None]]
-    d = coord - bound[:, None] if upper else bound[:, None] - coord
-    valid = index < count[:, None]
-    nxt = np.where(index + 1 < count[:, None], index + 1, 0)
-    q = poly[rows, nxt]
-    dq = d[rows, nxt]
-    keep_p = valid & (d <= 0)
-    cross = valid & (((d < 0) & (dq > 0)) | ((d > 0) & (dq < 0)))
-    t = np.where(cross, d / np.where(cross, d - dq, 1.0), 0.0)
-    x = poly + t[:, :, None] * (q - poly)
-    x[rows, index, axis[:, None]] = bound[:, None]
-    keep = np.stack([keep_p, cross], axis=2).reshape(k, 2 * slots)
-    cand = np.stack([poly, x], axis=2).reshape(k, 2 * slots, 3)
-    new_count = keep.sum(axis=1)
-    fits = new_count <= slots
-    keep &= fits[:, None]
-    pos = np.cumsum(keep, axis=1) - 1
-    r, j = np.nonzero(keep)
-    new = poly.copy()
-    new[r, pos[r, j]] = cand[r, j]
-    count = np.where(fits, new_count, count)
-    # Unused slots repeat vertex 0, so that min and max over all slots give the bounds.
-    return np.where((index < count[:, None])[:, :, None], new, new[:, :1]), count
+    out = np.empty_like(poly)
+    count = np.asarray(count, np.int64)
+    new_count = count.copy()  # (not the groups' counts: those are read group by group)
+    for group, res, n, _, _ in _clip_groups(lambda group, c: poly[group, :c], count, axis,
+                                            bound, upper, poly.shape[1]):
+        out[group, :res.shape[1]] = res
+        out[group, res.shape[1]:] = res[:, :1]
+        new_count[group] = n
+    return out, new_count
 
 
 def polygon_bounds(poly: np.ndarray):
@@ -161,107 +207,131 @@ def polygon_bounds(poly: np.ndarray):
     return poly.min(axis=1), poly.max(axis=1)
 
 
-def _best_splits(rlo, rhi, rext, seg, counts, cell_lo, cell_hi, bins, ct, ci, bonus):
+def _best_splits(box, seg, counts, cell_lo, cell_hi, bins, ct, ci, bonus):
     """Best SAH plane of every node: (cost, axis, plane), [K] each (cost inf: none).
+
+    ``box`` [7, R]: the references' clipped boxes (lo x, y, z, hi x, y, z) and their
+    triangles' extents, sorted by node ``seg`` (``counts`` per node, none 0).
 
     Candidates per axis: the interior boundaries of ``bins`` equal bins over the extent of
     the node's references (N_L: references whose box starts in a lower bin, N_R: ending in
-    a higher one), and the two empty-space cuts just outside that extent.
+    a higher one), and the two empty-space cuts just outside that extent. The three axes
+    are binned at once, node arrays [3, K] and one ``bincount`` per side over keys
+    ``(axis * K + node) * bins + bin``; ties go to the lower axis, and on an axis to the
+    interior boundary, then the low cut, then the high one.
     """
     k = counts.shape[0]
     offsets = np.cumsum(counts) - counts
-    elo = np.maximum(np.minimum.reduceat(rlo, offsets, axis=0), cell_lo)
-    ehi = np.minimum(np.maximum.reduceat(rhi, offsets, axis=0), cell_hi)
-    largest = np.maximum.reduceat(rext, offsets)  # the node's largest triangle
-    ext = cell_hi - cell_lo
+    c_lo, c_hi = cell_lo.T, cell_hi.T  # [3, K]
+    reduced = np.maximum.reduceat(box[3:7], offsets, axis=1)
+    lo = np.maximum(np.minimum.reduceat(box[:3], offsets, axis=1), c_lo)
+    hi = np.minimum(reduced[:3], c_hi)
+    largest = reduced[3]  # the node's largest triangle
+    ext = c_hi - c_lo
+    # Per axis a: the cell's extents across it (perimeter and product of the other two),
+    # so that a side of length s has half area s * perimeter + product.
+    perimeter = ext[[1, 2, 0]] + ext[[2, 0, 1]]
+    product = ext[[1, 2, 0]] * ext[[2, 0, 1]]
     area = half_area(cell_lo, cell_hi)
-    j = np.arange(1, bins)[:, None]
-    best_cost = np.full(k, np.inf)
-    best_axis = np.zeros(k, np.int64)
-    best_plane = np.zeros(k)
-    cols = np.arange(k)
-
-    def consider(cost, axis, plane):
-        better = cost < best_cost
-        best_cost[better] = cost[better]
-        best_axis[better] = axis
-        best_plane[better] = plane[better]
-
+    costs, planes = [], []
     with np.errstate(divide="ignore", invalid="ignore"):
-        for axis in range(3):
-            b, c = (axis + 1) % 3, (axis + 2) % 3
-            perimeter = ext[:, b] + ext[:, c]
-            product = ext[:, b] * ext[:, c]
-            lo, hi = elo[:, axis], ehi[:, axis]
-            c_lo, c_hi = cell_lo[:, axis], cell_hi[:, axis]
-            width = (hi - lo) / bins
-            # Interior boundaries (the bonus never applies: both sides hold a reference).
-            scale = np.where(width > 0, 1.0 / np.where(width > 0, width, 1.0), 0.0)
-            first = np.clip(np.floor((rlo[:, axis] - lo[seg]) * scale[seg]), 0, bins - 1)
-            last = np.clip(np.floor((rhi[:, axis] - lo[seg]) * scale[seg]), 0, bins - 1)
-            starts = np.bincount(first.astype(np.int64) * k + seg, minlength=bins * k)
-            ends = np.bincount(last.astype(np.int64) * k + seg, minlength=bins * k)
-            n_left = np.cumsum(starts.reshape(bins, k)[:-1], axis=0)
-            n_right = np.cumsum(ends.reshape(bins, k)[::-1], axis=0)[::-1][1:]
-            plane = lo + j * width
-            weighted = ((plane - c_lo) * perimeter + product) * n_left
-            weighted += ((c_hi - plane) * perimeter + product) * n_right
-            pick = np.argmin(weighted, axis=0)
-            cost = ct + ci * weighted[pick, cols] / area
-            plane = plane[pick, cols].astype(np.float32).astype(np.float64)
-            cost[~((width > 0) & (plane > c_lo) & (plane < c_hi))] = np.inf
-            consider(cost, axis, plane)
-            # Empty-space cuts just outside the references (see EMPTY_CUT_GAP), where they
-            # cut off more than their gap and MIN_EMPTY_CUT of the node.
-            least = MIN_EMPTY_CUT * ext.max(axis=1)
-            for low in (True, False):
-                gap = EMPTY_CUT_GAP * (largest + (lo - c_lo if low else c_hi - hi))
-                room = lo - c_lo if low else c_hi - hi
-                plane = (lo - gap if low else hi + gap).astype(np.float32).astype(np.float64)
-                side = (c_hi - plane) if low else (plane - c_lo)
-                cost = (1 - bonus) * (ct + ci * counts * (side * perimeter + product) / area)
-                cost[~((room > np.maximum(2 * gap, least)) & (plane > c_lo)
-                       & (plane < c_hi))] = np.inf
-                consider(cost, axis, plane)
-    best_cost[~np.isfinite(best_cost)] = np.inf
-    return best_cost, best_axis, best_plane
+        width = (hi - lo) / bins
+        scale = np.where(width > 0, 1.0 / np.where(width > 0, width, 1.0), 0.0)
+        # (References are sorted by node: repeat is a gather without an index.)
+        at, per = np.repeat(lo, counts, axis=1), np.repeat(scale, counts, axis=1)
+        # Keys (axis, node, bin): the bins of a node are contiguous, so the prefix sums
+        # and the argmin run along the last axis (far faster than along a middle one).
+        base = (seg + (np.arange(3) * k)[:, None]) * bins
+
+        def binned(x):  # references per (axis, node, bin) of x's bin
+            f = x - at
+            f *= per
+            np.clip(f, 0, bins - 1, out=f)  # then truncation is floor
+            key = f.astype(np.intp)
+            key += base
+            return np.bincount(key.ravel(), minlength=3 * bins * k).reshape(3, k, bins)
+
+        # Boundary j (1 .. bins-1): N_L starts in bins < j, N_R = N - ends in bins < j.
+        n_left = np.cumsum(binned(box[:3])[:, :, :-1], axis=2)
+        n_right = counts[:, None] - np.cumsum(binned(box[3:6])[:, :, :-1], axis=2)
+        # Side areas: (plane - c_lo) P + Q and (c_hi - plane) P + Q, plane = lo + j width.
+        j = np.arange(1, bins)
+        plane = lo[:, :, None] + j * width[:, :, None]  # [3, K, bins-1]
+        below = plane - c_lo[:, :, None]
+        below *= perimeter[:, :, None]
+        below += product[:, :, None]
+        above = np.subtract(c_hi[:, :, None], plane, out=plane)
+        above *= perimeter[:, :, None]
+        above += product[:, :, None]
+        below *= n_left
+        above *= n_right
+        below += above
+        pick = np.argmin(below, axis=2)  # [3, K]
+        weighted = np.take_along_axis(below, pick[:, :, None], axis=2)[:, :, 0]
+        plane = (lo + (pick + 1) * width).astype(np.float32).astype(np.float64)
+        cost = ct + ci * weighted / area
+        cost[~((width > 0) & (plane > c_lo) & (plane < c_hi))] = np.inf
+        costs.append(cost)
+        planes.append(plane)
+        # Empty-space cuts just outside the references (see EMPTY_CUT_GAP), where they cut
+        # off more than their gap and MIN_EMPTY_CUT of the node.
+        least = MIN_EMPTY_CUT * ext.max(axis=0)
+        for low in (True, False):
+            room = lo - c_lo if low else c_hi - hi
+            gap = EMPTY_CUT_GAP * (largest + room)
+            plane = (lo - gap if low else hi + gap).astype(np.float32).astype(np.float64)
+            side = (c_hi - plane) if low else (plane - c_lo)
+            cost = (1 - bonus) * (ct + ci * counts * (side * perimeter + product) / area)
+            cost[~((room > np.maximum(2 * gap, least)) & (plane > c_lo)
+                   & (plane < c_hi))] = np.inf
+            costs.append(cost)
+            planes.append(plane)
+    # [axis, candidate kind, node]: the first of equal costs wins.
+    cost = np.stack(costs, axis=1).reshape(9, k)
+    cost[np.isnan(cost)] = np.inf
+    best = np.argmin(cost, axis=0)
+    cols = np.arange(k)
+    plane = np.stack(planes, axis=1).reshape(9, k)[best, cols]
+    return cost[best, cols], best // 3, plane
 
 
 class _Pool:
-    """The references' clipped polygons, appended to as straddlers are clipped; compacted
-    to the live ones when those fall under half (amortised O(1) per polygon)."""
+    """The clipped polygons (float64 [N, POLYGON_SLOTS, 3], the slots past a polygon's
+    count unused, and the counts) of the references whose triangle has been clipped (the
+    others, ``-1``, are their triangles: most references, never copied here), appended to
+    as straddlers are clipped; compacted to the live ones when those fall under a quarter
+    (amortised O(1) per polygon)."""
 
-    def __init__(self, triangles: np.ndarray):
-        n = triangles.shape[0]
-        self.poly = np.empty((max(4 * n, 16), POLYGON_SLOTS, 3))
+    def __init__(self, n: int):
+        self.poly = np.empty((max(n, 16), POLYGON_SLOTS, 3))
         self.count = np.empty(self.poly.shape[0], np.int64)
-        self.poly[:n, :3] = triangles
-        self.poly[:n, 3:] = triangles[:, :1]
-        self.count[:n] = 3
-        self.size = n
+        self.size = 0
 
-    def get(self, index):
-        return self.poly[index], self.count[index]
-
-    def add(self, poly, count):
-        n = poly.shape[0]
+    def reserve(self, n: int) -> int:
+        """Room for ``n`` more polygons: the first one's row."""
         if self.size + n > self.poly.shape[0]:
             cap = max(2 * self.poly.shape[0], self.size + n)
-            self.poly = np.resize(self.poly, (cap, POLYGON_SLOTS, 3))
-            self.count = np.resize(self.count, cap)
-        self.poly[self.size:self.size + n] = poly
-        self.count[self.size:self.size + n] = count
+            grown = np.empty((cap, POLYGON_SLOTS, 3))
+            grown[:self.size] = self.poly[:self.size]
+            self.poly = grown
+            self.count = np.concatenate([self.count[:self.size],
+                                         np.empty(cap - self.size, np.int64)])
         self.size += n
-        return np.arange(self.size - n, self.size)
+        return self.size - n
 
-    def compact(self, live):
-        if 2 * live.shape[0] >= self.size:
-            return live
-        n = live.shape[0]
-        poly, count = self.get(live)
-        self.poly[:n], self.count[:n] = poly, count
+    def compact(self, rpoly):
+        """``rpoly`` (pool rows, -1: the triangle) once the pool holds only its rows."""
+        clipped = np.flatnonzero(rpoly >= 0)
+        if 4 * clipped.size >= self.size:
+            return rpoly
+        # A polygon referenced by several references is copied once per reference.
+        n = clipped.size
+        live = rpoly[clipped]
+        self.poly[:n], self.count[:n] = self.poly[live], self.count[live]
         self.size = n
-        return np.arange(n)
+        rpoly = rpoly.copy()
+        rpoly[clipped] = np.arange(n)
+        return rpoly
 
 
 def build(
@@ -298,27 +368,28 @@ def build(
     planar_total = 0
     # The references of the active level, sorted by node: node, triangle row, the triangle
     # clipped to the node's widened cell (a polygon in ``pool``, which only straddlers add
-    # to) and its bounds.
+    # to) and ``box`` [7, R]: its bounds (lo x, y, z, hi x, y, z) and the triangle's
+    # extent, one array so that a level takes it with one gather.
     rseg = np.zeros(t_count, np.int64)
     rtri = np.arange(t_count, dtype=np.int64)
-    pool = _Pool(tri64)
-    rpoly = np.arange(t_count, dtype=np.int64)
-    rlo, rhi = tri64.min(axis=1), tri64.max(axis=1)
+    pool = _Pool(8 * t_count)  # (rows never written cost no memory)
+    rpoly = np.full(t_count, -1, np.int64)
+    box = np.concatenate([tri64.min(axis=1).T, tri64.max(axis=1).T, extent[None]])
     while levels.active:
         k = levels.size
         counts = np.bincount(rseg, minlength=k)
         splitting = levels.wanting_split(counts)
-        axis = np.zeros(k, np.int64)
-        plane = np.zeros(k)
-        if splitting.any():
-            cand = np.flatnonzero(splitting)
-            remap = np.full(k, -1, np.int64)
-            remap[cand] = np.arange(cand.size)
-            mine = splitting[rseg]
-            cost, axis[cand], plane[cand] = _best_splits(
-                rlo[mine], rhi[mine], extent[rtri[mine]], remap[rseg[mine]], counts[cand],
-                levels.lo[cand], levels.hi[cand], bins, ct, ci, bonus)
-            splitting[cand] &= cost < ci * counts[cand]
+        if not splitting.any():
+            levels.close_leaves(splitting, counts, rseg, rtri)
+            break
+        # Every node's best plane (nodes not wanting a split hold at most max_leaf_size
+        # references: cheaper to include than to leave out).
+        cost, axis, plane = np.empty(k), np.empty(k, np.int64), np.empty(k)
+        for first, end, r0, r1 in node_chunks(counts):
+            cost[first:end], axis[first:end], plane[first:end] = _best_splits(
+                box[:, r0:r1], rseg[r0:r1] - first, counts[first:end],
+                levels.lo[first:end], levels.hi[first:end], bins, ct, ci, bonus)
+        splitting &= cost < ci * counts
         levels.close_leaves(splitting, counts, rseg, rtri)
         nodes = np.flatnonzero(splitting)
         m = nodes.size
@@ -341,42 +412,81 @@ def build(
         sel = np.flatnonzero(splitting[rseg])
         r = rank[rseg[sel]]
         a = ax[r]
-        x_lo, x_hi = rlo[sel, a], rhi[sel, a]
-        planar = (x_lo == sp[r]) & (x_hi == sp[r])
+        x_lo, x_hi = box[a, sel], box[a + 3, sel]
+        s_r = sp[r]
+        planar = (x_lo == s_r) & (x_hi == s_r)
         # Each child's cell widened, for this reference, by its margin: CELL_MARGIN of the
         # child's size and of the triangle's extent (accel.geometry.reference_margin).
-        ext = extent[rtri[sel]]
-        upper0 = sp[r] + reference_margin(size0[r], ext)  # child 0's widened cell ends here
-        lower1 = sp[r] - reference_margin(size1[r], ext)  # child 1's starts here
+        ext = box[6, sel]
+        upper0 = s_r + reference_margin(size0[r], ext)  # child 0's widened cell ends here
+        lower1 = s_r - reference_margin(size1[r], ext)  # child 1's starts here
         member = [(x_lo <= upper0) & ~planar, (x_hi >= lower1) & ~planar]
-        # Planar references: the side of lower cost (Wald & Havran).
-        n_planar = np.bincount(r[planar], minlength=m)
-        n0 = np.bincount(r[member[0]], minlength=m)
-        n1 = np.bincount(r[member[1]], minlength=m)
-        area = half_area(lo, hi)
-        a0, a1 = half_area(lo0, hi0), half_area(lo1, hi1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            planar_left = (split_cost(ct, ci, bonus, a0, a1, area, n0 + n_planar, n1)
-                           < split_cost(ct, ci, bonus, a0, a1, area, n0, n1 + n_planar))
-        member[0] |= planar & planar_left[r]
-        member[1] |= planar & ~planar_left[r]
-        planar_total += int(planar.sum())
-        # Straddlers (both sides): the polygon clipped by each side's widened bound.
+        if planar.any():
+            # Planar references: the side of lower cost (Wald & Havran).
+            n_planar = np.bincount(r[planar], minlength=m)
+            n0 = np.bincount(r[member[0]], minlength=m)
+            n1 = np.bincount(r[member[1]], minlength=m)
+            area = half_area(lo, hi)
+            a0, a1 = half_area(lo0, hi0), half_area(lo1, hi1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                planar_left = (split_cost(ct, ci, bonus, a0, a1, area, n0 + n_planar, n1)
+                               < split_cost(ct, ci, bonus, a0, a1, area, n0, n1 + n_planar))
+            member[0] |= planar & planar_left[r]
+            member[1] |= planar & ~planar_left[r]
+            planar_total += int(planar.sum())
+        # Straddlers (both sides): the polygon clipped by each side's widened bound, where
+        # it reaches past that bound (elsewhere clipping would return it unchanged).
         both = np.flatnonzero(member[0] & member[1])
-        poly, count = pool.get(rpoly[sel[both]])
-        clipped = []
-        for upper, bound in ((True, upper0), (False, lower1)):
-            p, c = clip_polygons(poly, count, a[both], bound[both], upper)
-            clipped.append((pool.add(p, c),) + polygon_bounds(p))
-
-        # The next level: the children that hold references, references sorted by child;
-        # the straddlers' clipped polygons replace their parents' ones.
         order = levels.descend(sel, r, member)
+        # The next level's references: entries (side 0's members, then side 1's) whose
+        # straddlers are replaced by their clipped polygons (rows R.. of the extended
+        # arrays), in the order of ``order.entry``.
+        src = np.concatenate([sel[order.rows[0]], sel[order.rows[1]]])
+        at = [np.flatnonzero(member[1][order.rows[0]]),
+              order.rows[0].size + np.flatnonzero(member[0][order.rows[1]])]
+        new_box, new_poly = [box], [rpoly]
+        added = box.shape[1]
+        for side, (upper, bound, beyond) in enumerate(
+                ((True, upper0, x_hi > upper0), (False, lower1, x_lo < lower1))):
+            clip = np.flatnonzero(beyond[both])
+            if clip.size == 0:
+                continue
+            refs = sel[both[clip]]
+            ids = rpoly[refs]
+            start = pool.reserve(clip.size)
+            p_box = np.empty((7, clip.size))
+            p_box[6] = box[6, refs]
+
+            def fetch(group, c, ids=ids, tris=rtri[refs]):  # the pool's, or the triangles
+                poly = np.empty((group.size, c, 3))
+                mine = ids[group]
+                whole = mine < 0
+                poly[~whole] = pool.poly[mine[~whole], :c]
+                if c == 3:
+                    poly[whole] = tri64[tris[group[whole]]]
+                return poly
+
+            for group, res, n, p_lo, p_hi in _clip_groups(
+                    fetch, np.where(ids < 0, 3, pool.count[ids]), a[both[clip]],
+                    bound[both[clip]], upper):
+                pool.poly[start + group, :res.shape[1]] = res
+                pool.count[start + group] = n
+                p_box[:3, group], p_box[3:6, group] = p_lo.T, p_hi.T
+            new_poly.append(start + np.arange(clip.size))
+            new_box.append(p_box)
+            src[at[side][clip]] = added + np.arange(clip.size)
+            added += clip.size
+        src = src[order.entry]
         rseg, rtri = order.segment, order.gather(rtri)
-        rpoly, rlo, rhi = order.gather(rpoly), order.gather(rlo), order.gather(rhi)
-        for side in (0, 1):
-            where = order.slots(side, both)
-            rpoly[where], rlo[where], rhi[where] = clipped[side]
+        # (A take of the level's rows, then the clipped ones filled in: no copy of the
+        # level's arrays with the clipped ones appended, at 1M triangles 100s of MiB.)
+        clipped = np.flatnonzero(src >= box.shape[1])
+        from_clip = src[clipped] - box.shape[1]
+        src[clipped] = 0
+        box, rpoly = np.take(box, src, axis=1), np.take(rpoly, src)
+        if clipped.size:
+            box[:, clipped] = np.concatenate(new_box[1:], axis=1)[:, from_clip]
+            rpoly[clipped] = np.concatenate(new_poly[1:])[from_clip]
         rpoly = pool.compact(rpoly)
 
     tree = levels.rows("kdtree")

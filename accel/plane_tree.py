@@ -77,6 +77,11 @@ EMPTY_CUT_GAP = 2.0**-14
 #: with the bonus any empty cut "pays", and thinner and thinner slivers next to geometry
 #: lying in a plane would otherwise be cut off level after level.
 MIN_EMPTY_CUT = 2.0**-10
+#: Nodes per pass of a split search (:func:`node_chunks`): its per-candidate arrays
+#: ([nodes, orientations, bins] float64) then stay a few MiB, in cache and reused by the
+#: allocator, where a whole level's (up to GiBs on 1M triangles) would be mapped afresh,
+#: page by page, for every temporary. The search is per node, so the result is the same.
+SEARCH_CHUNK = 4096
 
 
 def default_max_depth(triangles: int) -> int:
@@ -113,17 +118,20 @@ def half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
 
 
+def node_chunks(counts: np.ndarray, size: int = SEARCH_CHUNK):
+    """Consecutive runs of at most ``size`` nodes of a level whose references are sorted by
+    node (``counts`` per node): (first node, end node, first reference, end reference)."""
+    ends = np.cumsum(counts)
+    for first in range(0, counts.shape[0], size):
+        end = min(first + size, counts.shape[0])
+        yield first, end, int(ends[first] - counts[first]), int(ends[end - 1])
+
+
 def split_cost(ct, ci, bonus, a_left, a_right, area, n_left, n_right):
     """The SAH cost of a split (Wald & Havran 2006, eq. 4): ``lambda * (K_T + K_I *
     (A_L N_L + A_R N_R) / A)``, lambda = 1 - ``bonus`` when a side is empty, else 1."""
     cost = ct + ci * (a_left * n_left + a_right * n_right) / area
     return cost * np.where((n_left == 0) | (n_right == 0), 1.0 - bonus, 1.0)
-
-
-def ranks_in_segments(flags: np.ndarray, seg_first: np.ndarray, seg: np.ndarray) -> np.ndarray:
-    """For each element, how many flagged elements precede it in its segment."""
-    c = np.cumsum(flags) - flags
-    return c - c[seg_first[seg]]
 
 
 class TreeTriangles(NamedTuple):
@@ -172,10 +180,16 @@ class ChildOrder:
     reference on both sides (a straddler) is in both children. Children that receive no
     reference are not in the next level.
 
+    The order is one stable sort of the *entries* (side 0's members, then side 1's, each
+    in level order) by the key ``2 * node + side``: the keys are two ascending runs, which
+    the stable sort (timsort) merges in O(S); the next level then takes every array with
+    one gather (``source``) instead of a scatter per side.
+
     Args:
         sel: int [S], the rows (in the level's reference arrays) of the splitting nodes'
             references, in level order.
-        node_of: int [S], each one's node among the ``m`` splitting nodes (0 .. m-1).
+        node_of: int [S], each one's node among the ``m`` splitting nodes (0 .. m-1),
+            ascending.
         member: two bool [S] arrays: whether each goes to child 0 (below the plane) and to
             child 1 (above).
         m: the number of splitting nodes.
@@ -184,40 +198,26 @@ class ChildOrder:
         size: the next level's reference count.
         live: the children (index ``2 * node + side``) that receive references.
         segment: int64 [size], each next-level reference's node in the next level.
+        rows: (rows 0, rows 1), the members of each side (indices into ``sel``); the
+            entries are their concatenation.
+        entry: int64 [size], each next-level reference's entry.
+        source: int64 [size], each next-level reference's row in the level.
     """
 
     def __init__(self, sel, node_of, member, m):
-        self._sel, self._node_of = sel, node_of
-        seg_first = np.zeros(m, np.int64)
-        seg_first[1:] = np.cumsum(np.bincount(node_of, minlength=m))[:-1]
-        n_child = np.stack([np.bincount(node_of[member[0]], minlength=m),
-                            np.bincount(node_of[member[1]], minlength=m)], axis=1).reshape(-1)
-        self._child_first = np.cumsum(n_child) - n_child
-        self.size = int(n_child.sum())
-        self.live = np.flatnonzero(n_child > 0)
-        remap = np.full(2 * m, -1, np.int64)
-        remap[self.live] = np.arange(self.live.size)
-        self._rank, self._rows, self._slots = [], [], []
-        self.segment = np.empty(self.size, np.int64)
-        for side in (0, 1):
-            rows = np.flatnonzero(member[side])
-            self._rank.append(ranks_in_segments(member[side], seg_first, node_of))
-            self._rows.append(rows)
-            self._slots.append(self.slots(side, rows))
-            self.segment[self._slots[side]] = remap[2 * node_of[rows] + side]
-
-    def slots(self, side: int, rows: np.ndarray) -> np.ndarray:
-        """The next-level slots of the references ``rows`` (indices into ``sel``, all
-        members of ``side``) in child ``side``."""
-        return self._child_first[2 * self._node_of[rows] + side] + self._rank[side][rows]
+        self.rows = (np.flatnonzero(member[0]), np.flatnonzero(member[1]))
+        key = np.concatenate([2 * node_of[self.rows[0]], 2 * node_of[self.rows[1]] + 1])
+        self.entry = np.argsort(key, kind="stable")
+        n_child = np.bincount(key, minlength=2 * m)
+        self.size = int(key.size)
+        self.live = np.flatnonzero(n_child)
+        self.segment = np.repeat(np.arange(self.live.size), n_child[self.live])
+        self.source = np.concatenate([sel[self.rows[0]], sel[self.rows[1]]])[self.entry]
 
     def gather(self, values: np.ndarray) -> np.ndarray:
         """A per-reference array of the level (indexed by reference row) for the next
         level: each reference's value in each child that receives it."""
-        out = np.empty((self.size,) + values.shape[1:], values.dtype)
-        for side in (0, 1):
-            out[self._slots[side]] = values[self._sel[self._rows[side]]]
-        return out
+        return values[self.source]
 
 
 class TreeRows(NamedTuple):

@@ -649,3 +649,26 @@ def test_soup_closest_hit_matches_brute(case):
 @given(case=soups())
 def test_soup_occluded_matches_brute(case):
     check_soup_occluded(case)
+
+
+def test_clip_polygons_clips_by_vertex_count_group():
+    # A triangle and a square (4 slots: the square fills them; the triangle's 4th slot is
+    # garbage, which clipping must not read), clipped to x <= 0.5 and to x >= 0.5.
+    tri = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [9.0, 9.0, 9.0]]
+    square = [[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 1.0], [0.0, 1.0, 1.0]]
+    poly = np.array([tri, square])
+    count = np.array([3, 4])
+    axis = np.array([0, 0])
+    bound = np.array([0.5, 0.5])
+    below, below_count = kdtree.clip_polygons(poly, count, axis, bound, True)
+    above, above_count = kdtree.clip_polygons(poly, count, axis, bound, False)
+    assert below_count.tolist() == [4, 4] and above_count.tolist() == [3, 4]
+    np.testing.assert_array_equal(below[0], [[0, 0, 0], [0.5, 0, 0], [0.5, 0.5, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(above[0], [[0.5, 0, 0], [1, 0, 0], [0.5, 0.5, 0], [0.5, 0, 0]])
+    np.testing.assert_array_equal(below[1], [[0, 0, 1], [0.5, 0, 1], [0.5, 1, 1], [0, 1, 1]])
+    np.testing.assert_array_equal(above[1], [[0.5, 0, 1], [1, 0, 1], [1, 1, 1], [0.5, 1, 1]])
+    # Entirely inside: unchanged (unused slots repeat vertex 0).
+    same, same_count = kdtree.clip_polygons(poly[:1], count[:1], axis[:1], np.array([2.0]),
+                                            True)
+    assert same_count.tolist() == [3]
+    np.testing.assert_array_equal(same[0], tri[:3] + [tri[0]])
