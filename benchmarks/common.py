@@ -126,3 +126,44 @@ def rates(rays: int, seconds: list[float]) -> dict:
     s = summary(seconds)
     return {"median": rays / s["median"] / 1e6, "min": rays / s["max"] / 1e6,
             "max": rays / s["min"] / 1e6}
+
+
+def cost_model(name: str, traces: list[dict]) -> dict:
+    """Fit the time per ray to the per-ray counters over the sets (Havran & Purgathofer).
+
+    time / rays ~ C_0 + C_TS x steps + C_IT x tests, with steps and tests the sets' mean
+    counts: Havran and Purgathofer's C_TS (a traversal step) and C_IT (a triangle test),
+    plus C_0, what a ray costs whatever its path (loading and storing it, the lanes'
+    refill, the call's fixed cost spread over the rays). Non-negative least squares on
+    relative errors (each set weighs the same): every subset of the three terms is fitted
+    and the feasible one with the least error kept. The residual is the root mean square
+    of the relative errors of the fitted times.
+    """
+    steps = np.array([t["counters"]["steps"]["mean"] for t in traces])
+    tests = np.array([t["counters"]["tests"]["mean"] for t in traces])
+    per_ray = np.array([t["seconds"]["median"] / t["rays"] for t in traces])
+    a = np.stack([steps, tests, np.ones_like(steps)], axis=1) / per_ray[:, None]
+    b = np.ones(len(traces))
+    best = (np.zeros(3), float("nan"))
+    for columns in ((0, 1, 2), (0, 1), (0, 2), (1, 2), (0,), (1,), (2,)):
+        if len(columns) > len(traces):
+            continue
+        sol = np.linalg.lstsq(a[:, columns], b, rcond=None)[0]
+        if np.any(sol < 0):
+            continue
+        coef = np.zeros(3)
+        coef[list(columns)] = sol
+        err = float(np.sqrt(np.mean((a @ coef - b) ** 2)))
+        if not err >= best[1] - 1e-12:  # also true while best is NaN
+            best = (coef, err)
+    coef, residual = best
+    points = [{"set": t["set"], "query": t["query"], "rays": t["rays"],
+               "seconds": t["seconds"]["median"], "steps_mean": s, "tests_mean": c,
+               "predicted_seconds": t["rays"] * (coef[0] * s + coef[1] * c + coef[2])}
+              for t, s, c in zip(traces, steps, tests, strict=True)]
+    return {"kind": "cost_model", "structure": name, "c_ts_ns": coef[0] * 1e9,
+            "c_it_ns": coef[1] * 1e9, "c_ray_ns": coef[2] * 1e9, "residual": residual,
+            "points": points,
+            "fit": "time/rays ~ C_0 + C_TS steps + C_IT tests; non-negative least squares "
+                   "of relative errors over the ray sets",
+            "time_basis": "wall clock with all devices working"}

@@ -21,7 +21,8 @@ with one record per measurement, told apart by ``kind``:
   skipped), note, set, query, rays, threads, repeats, seconds, mrays_per_s,
   ratio_to_embree (numbers null unless ok);
 - ``correctness``: structure, set, query, reference (brute), rays, reference_hits,
-  mismatches, mismatches_by_field, embree_rays, embree_disagreements;
+  mismatches, mismatches_by_field, embree_rays, embree_disagreements, and where the
+  mismatches were judged by the float64 oracle, oracle {rays, structure_right, brute_right};
 - ``scaling``: structure, set, rays, rows [{mesh, triangles, build_repeats,
   build_seconds, ns_per_n_log2_n, trace_repeats, trace_seconds, mrays_per_s,
   first_call_seconds, embree_mrays_per_s, ratio_to_embree, from_main_run}],
@@ -43,6 +44,7 @@ import math
 import re
 
 from accel import NAMES
+from jrt.scenes import SCENES
 
 STRUCTURES = [name for name in NAMES if name != "brute"]
 SETS = ["camera", "shadow", "reflected", "refracted", "incoherent"]
@@ -111,7 +113,9 @@ DEFS = {
         "rays": _POS_COUNT, "reference_hits": _COUNT, "mismatches": _COUNT,
         "mismatches_by_field": {"type": "object", "additionalProperties": _COUNT,
                                 "minProperties": 1},
-        "embree_rays": _POS_COUNT, "embree_disagreements": _COUNT}),
+        "embree_rays": _POS_COUNT, "embree_disagreements": _COUNT},
+        {"oracle": _obj({"rays": _POS_COUNT, "structure_right": _COUNT,
+                         "brute_right": _COUNT})}),
     "scaling_row": _obj({
         "mesh": _STR, "triangles": _POS_COUNT, "build_repeats": _REF["times"],
         "build_seconds": _REF["seconds"], "ns_per_n_log2_n": _NONNEG,
@@ -174,7 +178,8 @@ SCHEMA = {
                 "distinct_rays": _POS_COUNT})},
             "builds": _POS_COUNT, "repeats": _POS_COUNT, "brute_rays": _POS_COUNT,
             "trimesh_rays": _COUNT, "scaling_meshes": _COUNT, "scaling_builds": _POS_COUNT,
-            "scaling_repeats": _POS_COUNT, "embree_threads": _POS_COUNT}),
+            "scaling_repeats": _POS_COUNT, "embree_threads": _POS_COUNT},
+            {"scene": _null({"enum": list(SCENES)})}),
         "records": {"type": "array", "minItems": 1, "items": {
             "type": "object", "required": ["kind"],
             "properties": {"kind": {"enum": KINDS}},

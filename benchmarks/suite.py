@@ -71,7 +71,7 @@ import jrt  # noqa: F401  (XLA flags before JAX starts its backend)
 import jrt.data
 import jrt.raysets
 from benchmarks.build_scaling import build_times, fit_exponent, ns_per_n_log2_n, subdivide
-from benchmarks.common import jsonable, rates, summary, time_calls, write_record
+from benchmarks.common import cost_model, jsonable, rates, summary, time_calls, write_record
 from benchmarks.peers import (
     EmbreePeer,
     mitsuba_rows,
@@ -82,7 +82,7 @@ from benchmarks.peers import (
 )
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 from jrt.interaction import face_forward, surface_interaction
-from jrt.scenes import GENERATED, SCENES, scene_mesh
+from jrt.scenes import GENERATED, SCENES, SIZES, scene_mesh
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -162,6 +162,8 @@ def build_parser(add_help: bool = True, prog: str = PROG) -> argparse.ArgumentPa
     where.add_argument("--scene", dest="suite_scene", default=None, choices=SCENES,
                        metavar="NAME", help="a scene of the study's suite (jrt.scenes: "
                        f"{', '.join(SCENES)}); --quick takes its small size")
+    parser.add_argument("--scene-size", choices=SIZES, default=None,
+                        help="the size of --scene's mesh (default full, --quick small)")
     parser.add_argument("--kernel", default="watertight", choices=tuple(jrt.KERNELS))
     parser.add_argument("--camera-size", type=_positive, default=None,
                         help=f"camera image side in pixels ({default('camera_size')})")
@@ -540,7 +542,17 @@ def _brute_reference(brute, ray_set: RaySet, idx, kernel: str) -> dict:
             ._asdict().items()}
 
 
-def correctness_record(name, ray_set, idx, ours, reference, embree_result) -> dict:
+def correctness_record(name, ray_set, idx, ours, reference, embree_result,
+                       triangles=None) -> dict:
+    """The structure's answers on the rays ``idx`` against brute force's (``reference``),
+    field by field, and against Embree's on the whole set.
+
+    Where they differ and ``triangles`` (float64 [T, 3, 3], the mesh's faces) is given, the
+    float64 oracle (``benchmarks.stability.float64_oracle``) decides which of the two is
+    right: brute force evaluates every triangle for every ray, and a float32 kernel
+    evaluated on a triangle a few ulps wide seen from far away (the stadium's camel) can
+    report a false hit that the structures, whose boxes cull that triangle, never see.
+    """
     fields = {}
     differ = np.zeros(len(idx), bool)
     for key, ref in reference.items():
@@ -554,54 +566,38 @@ def correctness_record(name, ray_set, idx, ours, reference, embree_result) -> di
     else:
         reference_hits = int((reference["triangle"] >= 0).sum())
         embree_differ = ours["triangle"] != embree_result["triangle"]
-    return {"kind": "correctness", "structure": name, "set": ray_set.name,
-            "query": ray_set.query, "reference": "brute", "rays": len(idx),
-            "reference_hits": reference_hits, "mismatches": int(differ.sum()),
-            "mismatches_by_field": fields, "embree_rays": ray_set.rays,
-            "embree_disagreements": int(embree_differ.sum()),
-            "note": "bit for bit against brute force with the same kernel; Embree uses its "
-                    "own kernel, so a few disagreements on edges are expected"}
+    record = {"kind": "correctness", "structure": name, "set": ray_set.name,
+              "query": ray_set.query, "reference": "brute", "rays": len(idx),
+              "reference_hits": reference_hits, "mismatches": int(differ.sum()),
+              "mismatches_by_field": fields, "embree_rays": ray_set.rays,
+              "embree_disagreements": int(embree_differ.sum()),
+              "note": "bit for bit against brute force with the same kernel; Embree uses its "
+                      "own kernel, so a few disagreements on edges are expected"}
+    if differ.any() and triangles is not None:
+        from benchmarks.stability.float64_oracle import oracle
+
+        rows = np.asarray(idx)[differ]
+        tmax = None if ray_set.tmax is None else np.asarray(ray_set.tmax)[rows]
+        _, row_ref = oracle(triangles, ray_set.origins[rows], ray_set.directions[rows], tmax)
+        if ray_set.query == "occluded":
+            key, want = "occluded", row_ref >= 0
+        else:
+            key, want = "triangle", row_ref
+        mine_ok = ours[key][rows] == want
+        brute_ok = reference[key][differ] == want
+        record["oracle"] = {"rays": int(differ.sum()),
+                            "structure_right": int((mine_ok & ~brute_ok).sum()),
+                            "brute_right": int((brute_ok & ~mine_ok).sum())}
+    return record
 
 
-def cost_model(name: str, traces: list[dict]) -> dict:
-    """Fit the time per ray to the per-ray counters over the sets (Havran & Purgathofer).
-
-    time / rays ~ C_0 + C_TS x steps + C_IT x tests, with steps and tests the sets' mean
-    counts: Havran and Purgathofer's C_TS (a traversal step) and C_IT (a triangle test),
-    plus C_0, what a ray costs whatever its path (loading and storing it, the lanes'
-    refill, the call's fixed cost spread over the rays). Non-negative least squares on
-    relative errors (each set weighs the same): every subset of the three terms is fitted
-    and the feasible one with the least error kept. The residual is the root mean square
-    of the relative errors of the fitted times.
-    """
-    steps = np.array([t["counters"]["steps"]["mean"] for t in traces])
-    tests = np.array([t["counters"]["tests"]["mean"] for t in traces])
-    per_ray = np.array([t["seconds"]["median"] / t["rays"] for t in traces])
-    a = np.stack([steps, tests, np.ones_like(steps)], axis=1) / per_ray[:, None]
-    b = np.ones(len(traces))
-    best = (np.zeros(3), float("nan"))
-    for columns in ((0, 1, 2), (0, 1), (0, 2), (1, 2), (0,), (1,), (2,)):
-        if len(columns) > len(traces):
-            continue
-        sol = np.linalg.lstsq(a[:, columns], b, rcond=None)[0]
-        if np.any(sol < 0):
-            continue
-        coef = np.zeros(3)
-        coef[list(columns)] = sol
-        err = float(np.sqrt(np.mean((a @ coef - b) ** 2)))
-        if not err >= best[1] - 1e-12:  # also true while best is NaN
-            best = (coef, err)
-    coef, residual = best
-    points = [{"set": t["set"], "query": t["query"], "rays": t["rays"],
-               "seconds": t["seconds"]["median"], "steps_mean": s, "tests_mean": c,
-               "predicted_seconds": t["rays"] * (coef[0] * s + coef[1] * c + coef[2])}
-              for t, s, c in zip(traces, steps, tests, strict=True)]
-    return {"kind": "cost_model", "structure": name, "c_ts_ns": coef[0] * 1e9,
-            "c_it_ns": coef[1] * 1e9, "c_ray_ns": coef[2] * 1e9, "residual": residual,
-            "points": points,
-            "fit": "time/rays ~ C_0 + C_TS steps + C_IT tests; non-negative least squares "
-                   "of relative errors over the ray sets",
-            "time_basis": "wall clock with all devices working"}
+def oracle_text(check: dict) -> str:
+    """What the float64 oracle said of a correctness record's mismatches, for the log."""
+    o = check.get("oracle")
+    if not o:
+        return ""
+    return (f" (float64 oracle: {check['structure']} right on {o['structure_right']}, brute "
+            f"force on {o['brute_right']})")
 
 
 def scaling_ladder(mesh, mesh_label: str, count: int) -> list[tuple[str, object]]:
@@ -641,13 +637,17 @@ def _resolve(args) -> dict:
               for k, v in DEFAULTS[mode].items()}
     mesh_arg = args.mesh
     scene = getattr(args, "suite_scene", None)
+    size = getattr(args, "scene_size", None) or ("small" if args.quick else "full")
+    if getattr(args, "scene_size", None) and scene is None:
+        raise BenchError("--scene-size applies to --scene NAME (a scene of jrt.scenes)")
     if scene == "camel":
-        mesh_arg = "camel-19k" if args.quick else "camel"
+        mesh_arg = "camel-19k" if size == "small" else "camel"
     elif scene is not None:  # labelled "stadium", or "stadium-small" where it has two sizes
-        mesh_arg = scene + ("-small" if args.quick and scene in GENERATED else "")
+        mesh_arg = scene + ("-small" if size == "small" and scene in GENERATED else "")
     elif mesh_arg is None:
         mesh_arg = "camel-19k" if args.quick and jrt.data.has_camel("camel-19k") else "camel"
     params["mesh"] = mesh_arg
+    params["scene"] = scene
     return params
 
 
@@ -718,6 +718,7 @@ def run(args) -> dict:
     # without counters, and brute force on the correctness subsets; each on the first
     # set of its kind (the others share the compiled code).
     brute = accel.build("brute", mesh.vertices, mesh.faces)
+    triangles = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)]  # the oracle's
     tracer = Tracer(args.kernel, p["repeats"])
     subsets = {name: ray_subset(s, p["brute_rays"], args.seed + 1, pad=True)
                for name, s in sets.items()}
@@ -777,13 +778,15 @@ def run(args) -> dict:
             traces[name].append(rec)
             if ray_set.name == "camera":
                 records.append(heatmap_record(name, m["counts"], camera.width, camera.height))
-            check = correctness_record(name, ray_set, idx, result, reference, embree_result)
+            check = correctness_record(name, ray_set, idx, result, reference, embree_result,
+                                       triangles)
             records.append(check)
             c = rec["counters"]
             log(f"{ray_set.name:<10} {name:<8} {rate['median']:8.3f} Mrays/s "
                 f"(x{rec['ratio_to_embree']:.3f} Embree), steps {c['steps']['mean']:.1f}, "
                 f"tests {c['tests']['mean']:.1f}, leaves {c['leaves']['mean']:.1f}; "
-                f"{check['mismatches']} mismatches of {check['rays']:,} vs brute")
+                f"{check['mismatches']} mismatches of {check['rays']:,} vs brute"
+                f"{oracle_text(check)}")
             bar.update()
     bar.close()
     # Compile time apart: the first call less a warm call on the same set.
@@ -832,7 +835,8 @@ def run(args) -> dict:
     results = {
         "schema": "jrt-bench/1", "machine": machine,
         "parameters": {
-            "quick": bool(args.quick), "mesh": p["mesh"], "mesh_summary": mesh.summary(),
+            "quick": bool(args.quick), "mesh": p["mesh"], "scene": p["scene"],
+            "mesh_summary": mesh.summary(),
             "triangles": len(mesh.faces), "structures": names, "kernel": args.kernel,
             "device": args.device, "camera": {
                 "width": camera.width, "height": camera.height, "eye": camera.eye,

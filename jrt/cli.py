@@ -37,6 +37,7 @@ from jrt.data import MESHES, mesh_path
 from jrt.kernels import DEFAULT_KERNEL, KERNELS
 from jrt.mesh import MeshError, MeshWarning, load_mesh
 from jrt.rays_io import RaysFileError, load_rays, save_hits
+from jrt.scenes import GENERATED, scene_mesh
 
 #: The command line's own description (plain text: argparse prints it as it is).
 DESCRIPTION = ("jrt traces rays through triangle meshes with JAX. 'jrt trace' and 'jrt render' "
@@ -70,12 +71,31 @@ STUDY_COMMANDS = ("bench", "stability", "study", "report")
 DEFAULT_SCENE = "camel"
 
 
+#: Mesh names besides the shipped meshes: the generated scenes of the scene suite
+#: (``jrt.scenes``), and their small sizes as ``NAME-small``.
+SCENE_MESHES = tuple(n + size for n in GENERATED for size in ("", "-small"))
+
+
 def _mesh(arg: str | None):
-    """A path, or a short name of a shipped mesh (``jrt.data.MESHES``: camel, camel-19k,
-    bunny, teapot, fandisk)."""
+    """A path, a short name of a shipped mesh (``jrt.data.MESHES``: camel, camel-19k,
+    bunny, teapot, fandisk) or a generated scene of the scene suite (:data:`SCENE_MESHES`:
+    stadium, herd, room, slivers, each also ``-small``)."""
     if arg is None or arg in MESHES:
         return load_mesh(mesh_path(arg or "camel"))
+    if arg in SCENE_MESHES:
+        return scene_mesh(arg.removesuffix("-small"),
+                          size="small" if arg.endswith("-small") else "full")
     return load_mesh(arg)
+
+
+def _mesh_stem(arg: str | None) -> str:
+    """The default name of a mesh's output files: its short name, or its file's stem."""
+    if arg is None:
+        return "camel"
+    if arg in MESHES or arg in SCENE_MESHES:
+        return arg
+    name = Path(arg).name
+    return name.split(".")[0] or "render"
 
 
 def _cmd_trace(args) -> int:
@@ -171,7 +191,7 @@ def _cmd_render(args) -> int:
     # same shapes, is the render's own time.
     first = render()[1].seconds
     image, stats = render()
-    out = Path(args.output or "camel.png")
+    out = Path(args.output or f"{_mesh_stem(args.mesh)}.png")
     out.parent.mkdir(parents=True, exist_ok=True)
     io.imsave(out, to_srgb8(image), check_contrast=False)
     print(f"{accel_name}/{kernel} {stats.width}x{stats.height}: {stats.primary_rays:,} camera "
@@ -365,8 +385,9 @@ def build_parser(describe: bool = False) -> argparse.ArgumentParser:
 
     trace = sub.add_parser("trace", help="closest hits (or occlusion) of rays from a file",
                            epilog=EPILOG)
-    trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL, or .gz of one), or a "
-                       f"shipped mesh: {', '.join(MESHES)}")
+    trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL, or .gz of one), a "
+                       f"shipped mesh: {', '.join(MESHES)}, or a generated scene: "
+                       f"{', '.join(SCENE_MESHES)}")
     trace.add_argument("rays",
                        help=".npz with origins, directions float32 [N,3], optional tmax [N]")
     trace.add_argument("-o", "--output", required=True, help="output .npz of hits")
@@ -379,13 +400,14 @@ def build_parser(describe: bool = False) -> argparse.ArgumentParser:
         "render", help="render a mesh (Lambert, default: the camel) or a scene (--scene, "
         "Whitted) to a PNG", epilog=EPILOG)
     render.add_argument("mesh", nargs="?", default=None,
-                        help=f"mesh file, or a shipped mesh: {', '.join(MESHES)} "
-                        "(default camel)")
+                        help=f"mesh file, a shipped mesh: {', '.join(MESHES)}, or a "
+                        f"generated scene: {', '.join(SCENE_MESHES)} (default camel)")
     render.add_argument("--scene", default=None, metavar="NAME|FILE",
                         help="render a scene with the Whitted tree: a built-in name (camel, "
                         "glass-camel, mirror-camel) or a .toml scene file")
     render.add_argument("-o", "--output", default=None,
-                        help="PNG path (default camel.png, or SCENE-NAME.png with --scene)")
+                        help="PNG path (default MESH.png, camel.png without a mesh, or "
+                        "SCENE-NAME.png with --scene)")
     render.add_argument("--width", type=_positive_int, default=None,
                         help="pixels (default 640, or the scene's camera)")
     render.add_argument("--height", type=_positive_int, default=None,

@@ -40,6 +40,17 @@ SCENES = ("camel", "bunny", "teapot", "fandisk", "stadium", "herd", "room", "sli
 #: Sizes of a scene: ``full`` (the study) and ``small`` (tests and quick runs).
 SIZES = ("full", "small")
 
+#: What each scene is, in a few words (the report's cross-scene section quotes them).
+DESCRIPTIONS = {
+    "camel": "closed and evenly tessellated",
+    "bunny": "a scan with holes",
+    "teapot": "open patches, a small mesh",
+    "fandisk": "a CAD part: sharp creases, long thin triangles",
+    "stadium": "the camel in a stadium 1000 times its size",
+    "herd": "camels scattered in a field, some overlapping",
+    "room": "the camel in a closed room of long wall triangles",
+    "slivers": "a hairball of long thin needles",
+}
 #: Camels in the herd (full, small).
 HERD = {"full": 16, "small": 4}
 #: Needles in the slivers hairball (full, small).
@@ -185,4 +196,5 @@ def scene_mesh(name: str, *, size: str = "full") -> Mesh:
     return load_mesh(mesh_path(name))
 
 
-__all__ = ["GENERATED", "SCENES", "SIZES", "herd", "room", "scene_mesh", "slivers", "stadium"]
+__all__ = ["DESCRIPTIONS", "GENERATED", "SCENES", "SIZES", "herd", "room", "scene_mesh", "slivers",
+           "stadium"]

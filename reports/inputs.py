@@ -167,6 +167,9 @@ class Bench:
 @dataclass
 class Inputs:
     bench: list[Bench] = field(default_factory=list)
+    #: Benchmark runs on a scene of the scene suite (``--scene NAME``): the cross-scene
+    #: section's (``reports.scenes``), not the headline sections'.
+    scenes: list[Bench] = field(default_factory=list)
     stability: list[tuple[Path, dict]] = field(default_factory=list)
     work_precision: list[tuple[Path, dict, str]] = field(default_factory=list)
     inverse: list[tuple[Path, dict]] = field(default_factory=list)
@@ -254,7 +257,12 @@ def load_inputs(paths) -> Inputs:
                 inputs.warnings.append(f"`{path}` does not fit the suite's schema "
                                        f"(benchmarks.schema): {problem}; the report uses what "
                                        "it can read")
-            inputs.bench.append(Bench(path, data))
+            params = data.get("parameters")
+            if isinstance(params, dict) and isinstance(params.get("scene"), str):
+                inputs.scenes.append(Bench(path, data))
+                inputs.kinds[-1] = (path, "scene")
+            else:
+                inputs.bench.append(Bench(path, data))
             cmd = _recorded_command(data) or bench_command(data, path)
             inputs.work_precision += [(path, r, r.get("command") or cmd)
                                       for r in records if _is_wp(r)]
@@ -285,7 +293,7 @@ def load_inputs(paths) -> Inputs:
             inputs.work_precision += [(path, r, r.get("command") or cmd or "") for r in records]
             if wp_indicative(data):
                 inputs.indicative[path] = wp_indicative(data)
-    for b in inputs.bench:
+    for b in [*inputs.bench, *inputs.scenes]:
         if bench_indicative(b):
             inputs.indicative[b.path] = bench_indicative(b)
     if len(inputs.bench) > 1:
@@ -342,7 +350,12 @@ def bench_command(data: dict, path: Path) -> str:
     parts = [BENCH_COMMAND]
     if p.get("quick"):
         parts.append("--quick")
-    if p.get("mesh"):
+    if isinstance(p.get("scene"), str):  # a scene run: --scene NAME, its size if not implied
+        small = str(p.get("mesh", "")).endswith("-small") or p.get("mesh") == "camel-19k"
+        parts += ["--scene", p["scene"]]
+        if small != bool(p.get("quick")):
+            parts += ["--scene-size", "small" if small else "full"]
+    elif p.get("mesh"):
         parts += ["--mesh", str(p["mesh"])]
     structures = p.get("structures")
     if structures and sorted(structures) != sorted(engine_structures()):

@@ -229,9 +229,16 @@ def reading_bench(b: Bench) -> tuple[list[str], str]:
         bad = [r for r in checks if r.get("mismatches")]
         total = sum(count(r.get("rays")) for r in checks)
         if bad:
+            judged = [r["oracle"] for r in bad if isinstance(r.get("oracle"), dict)]
             items.append("Against brute force: mismatches in " + ", ".join(
                 f"{r.get('structure')}/{r.get('set')} ({r['mismatches']} of {r.get('rays')})"
-                for r in bad) + ".")
+                for r in bad) + "." + (
+                f" The float64 oracle judged {sum(count(o.get('rays')) for o in judged):,} of "
+                f"them: the structure right on "
+                f"{sum(count(o.get('structure_right')) for o in judged):,}, brute force on "
+                f"{sum(count(o.get('brute_right')) for o in judged):,} (brute force tests every "
+                "triangle for every ray, and a float32 kernel on a triangle a few ulps wide "
+                "seen from far away can report a false hit)." if judged else ""))
         else:
             items.append(f"Every structure returned brute force's hits bit for bit "
                          f"(0 mismatches in {total:,} checked rays).")

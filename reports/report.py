@@ -66,6 +66,7 @@ from reports.inputs import (
     load_inputs,
 )
 from reports.reading import places, reading_bench, reading_stability
+from reports.scenes import scene_runs, section_scenes
 from reports.sections import (
     parse_image,
     section_cost_model,
@@ -121,7 +122,8 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
 
     doc = Doc()
     doc.heading(1, title or "jrt: acceleration structures on the camel")
-    kinds = {"bench": "benchmark suite", "stability": "stability suite",
+    kinds = {"bench": "benchmark suite", "scene": "benchmark suite on a scene",
+             "stability": "stability suite",
              "work_precision": "work–precision records", "inverse": "worked inverse problems"}
     # Inputs named relative to the report (beside it, as a study writes them): a path of
     # the machine that made it means nothing to a reader.
@@ -149,7 +151,11 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
         doc.bullets(reading_stability(data))
     if havrans:
         doc.para("**Against the literature.** " + " ".join(havrans))
-    if not inputs.bench:
+    if inputs.scenes:
+        doc.para(f"**Across scenes.** The section \"The structures across scenes\" compares "
+                 f"the structures on {len(scene_runs(inputs))} scenes and checks four claims "
+                 "of the literature against them.")
+    if not inputs.bench and not inputs.scenes:
         doc.para("No benchmark results were given: the structures, scaling and cost-model "
                  f"sections come from `{BENCH_COMMAND}`.")
     if not inputs.stability:
@@ -163,6 +169,7 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
         section_scaling(doc, b, out, prefix)
         section_cost_model(doc, b, out, prefix)
         section_turntable(doc, b)
+    section_scenes(doc, inputs, out)
     section_work_precision(doc, inputs, out)
     section_inverse(doc, inputs, out)
     for path, data in inputs.stability:

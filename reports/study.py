@@ -4,15 +4,20 @@
 
 Runs, in this order, each writing its JSON into the output folder:
 
-1. the benchmark suite (``benchmarks/suite.py``): ``bench.json``;
-2. the stability suite (``benchmarks/stability.py``): ``stability.json``;
-3. the work-precision study (``benchmarks/work_precision.py``): ``work_precision.json``;
-4. the worked inverse problems (``benchmarks/inverse.py``, gradient descent through the
+1. the benchmark suite (``benchmarks/suite.py``) on the camel: ``bench.json``;
+2. the same suite on the other scenes of the scene suite (``jrt.scenes``: bunny, teapot,
+   fandisk, stadium, herd, room, slivers; ``--scenes`` picks some), without its scaling,
+   turntable and trimesh parts: ``scenes/NAME.json``. The generated scenes run at their
+   small size unless ``--full``;
+3. the stability suite (``benchmarks/stability.py``): ``stability.json``;
+4. the work-precision study (``benchmarks/work_precision.py``): ``work_precision.json``;
+5. the worked inverse problems (``benchmarks/inverse.py``, gradient descent through the
    differentiable queries and renderer; needs optax, skipped with a note without it):
    ``inverse.json``;
-5. renders of the built-in scenes and a dispersion close-up of the glass camel
+6. renders of the built-in scenes and a dispersion close-up of the glass camel
    (``jrt.whitted``), which the report copies into ``renders/``;
-6. the report (``reports/report.py``) from all of it: ``README.md``, ``index.html`` and
+7. the report (``reports/report.py``) from all of it (the scenes in its section "The
+   structures across scenes"): ``README.md``, ``index.html`` and
    the figures.
 
 The output folder is ``./study`` in the working directory unless ``-o`` names another
@@ -42,6 +47,7 @@ import time
 from pathlib import Path
 
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
+from jrt.scenes import SCENES as SUITE_SCENES
 
 #: The command name in usage and errors when run as ``python -m reports.study``
 #: (``jrt study`` passes its own).
@@ -55,6 +61,8 @@ PUBLISHED = Path(__file__).resolve().parent / "camel"
 #: Render sizes (width, height) of the built-in scenes, full and --quick.
 RENDER_SIZE = {"full": (480, 360), "quick": (96, 72)}
 SCENES = ("camel", "glass-camel", "mirror-camel")
+#: The scene suite's scenes that the scenes step runs (the camel is the bench step's).
+OTHER_SCENES = tuple(name for name in SUITE_SCENES if name != "camel")
 #: The dispersion close-up: the glass camel's own eye, aimed this fraction of the mesh's
 #: height above its centre (the humps), with this vertical field of view (degrees) and
 #: wavelength samples.
@@ -89,8 +97,11 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
                       help="the stability suite's full sweep and every work-precision "
                       "point: the published study's size")
     parser.add_argument("--skip", default="", metavar="STEPS",
-                        help="comma-separated steps to skip, from bench, stability, "
+                        help="comma-separated steps to skip, from bench, scenes, stability, "
                         "work_precision, inverse, renders (their JSON, if present, is reused)")
+    parser.add_argument("--scenes", type=scene_names, default=None, metavar="NAMES",
+                        help="comma-separated scenes of the scenes step, from "
+                        f"{', '.join(OTHER_SCENES)} (default all)")
     parser.add_argument("--structures", type=structure_names, default=None, metavar="NAMES",
                         help="comma-separated acceleration structures for the benchmark "
                         f"suite, from {', '.join(ENGINE_STRUCTURES)} (default all; brute "
@@ -125,7 +136,27 @@ def output_folder(args, parser: argparse.ArgumentParser) -> Path:
     return out
 
 
-STEPS = ("bench", "stability", "work_precision", "inverse", "renders")
+STEPS = ("bench", "scenes", "stability", "work_precision", "inverse", "renders")
+#: The scenes step's suite options by study size: the suite without its scaling, turntable
+#: and trimesh parts, the generated scenes small unless --full.
+SCENE_SIZES = {
+    "quick": ["--quick"],
+    "default": ["--scene-size", "small", "--camera-size", "256", "--rays", "65536",
+                "--builds", "3", "--repeats", "3"],
+    "full": ["--scene-size", "full", "--camera-size", "512", "--rays", "131072"],
+}
+SCENE_PARTS_OFF = ["--scaling", "0", "--turntable-frames", "0", "--trimesh-rays", "0"]
+
+
+def scene_names(text: str) -> list[str]:
+    """``--scenes``: comma-separated names of :data:`OTHER_SCENES`, in the suite's order."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in OTHER_SCENES]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown scene(s) {unknown or [text]}; allowed: {', '.join(OTHER_SCENES)} (the "
+            "camel is the bench step's)")
+    return [n for n in OTHER_SCENES if n in names]
 #: Arguments of the inverse problems' step by study size (benchmarks.inverse).
 INVERSE_SIZES = {"quick": ["--quick"], "default": [], "full": ["--steps", "300"]}
 
@@ -218,15 +249,28 @@ def main(argv=None, prog: str = PROG) -> int:
         print(f"[study] {name}: {time.perf_counter() - begun:.0f} s", flush=True)
         return result
 
+    size = "quick" if args.quick else "full" if args.full else "default"
     sizes = {"stability": ["--size", "quick" if args.quick else "full" if args.full
                            else "standard"],
              "work_precision": [] if args.full else ["--quick"]}
     if args.structures is not None:  # brute force, the suite's reference, runs anyway
         sizes["bench"] = quick + ["--structures", ",".join(args.structures)]
-    for name in ("bench", "stability", "work_precision"):
+    step("bench", lambda: _ok(_step_main("bench")(
+        ["-o", str(jsons["bench"])] + sizes.get("bench", quick))))
+    scenes = {name: out / "scenes" / f"{name}.json" for name in args.scenes or OTHER_SCENES}
+    structures = ([] if args.structures is None
+                  else ["--structures", ",".join(args.structures)])
+
+    def run_scenes():
+        for name, path in scenes.items():
+            print(f"[study] scenes: {name}", flush=True)
+            _ok(_step_main("bench")(["-o", str(path), "--scene", name, *SCENE_SIZES[size],
+                                     *SCENE_PARTS_OFF, *structures]))
+
+    step("scenes", run_scenes)
+    for name in ("stability", "work_precision"):
         step(name, lambda name=name: _ok(_step_main(name)(
             ["-o", str(jsons[name])] + sizes.get(name, quick))))
-    size = "quick" if args.quick else "full" if args.full else "default"
     if "inverse" not in skip and importlib.util.find_spec("optax") is None:
         print("[study] inverse: skipped (its optimiser, optax, is not installed: "
               "pip install optax)")
@@ -237,7 +281,7 @@ def main(argv=None, prog: str = PROG) -> int:
 
     from reports import report
 
-    present = [str(p) for p in jsons.values() if p.exists()]
+    present = [str(p) for p in [*jsons.values(), *scenes.values()] if p.exists()]
     if not present:
         raise SystemExit(f"{prog}: error: no results to report (every step skipped and "
                          f"no JSON in {out})")

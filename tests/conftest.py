@@ -158,10 +158,13 @@ def brute_hits(camel_brute, camel_rays):
     return get
 
 
-#: The quick study's structures and command line (after ``jrt``): one structure and brute
-#: force keep it to a few minutes; every structure has its own tests in the suites'.
+#: The quick study's structures, scenes and command line (after ``jrt``): one structure,
+#: brute force and one scene besides the camel keep it to a few minutes; every structure
+#: and scene has its own tests in the suites'.
 QUICK_STUDY_STRUCTURES = ("bvh",)
-QUICK_STUDY = ("study", "--quick", "--structures", ",".join(QUICK_STUDY_STRUCTURES))
+QUICK_STUDY_SCENES = ("stadium",)
+QUICK_STUDY = ("study", "--quick", "--structures", ",".join(QUICK_STUDY_STRUCTURES),
+               "--scenes", ",".join(QUICK_STUDY_SCENES))
 
 
 @pytest.fixture(scope="session")

@@ -243,3 +243,29 @@ def test_git_ignores_the_default_study_folder():
     tracked = subprocess.run(["git", "check-ignore", "-q", "reports/camel/bench.json"],
                              cwd=ROOT)
     assert tracked.returncode == 1
+
+
+def test_render_and_trace_take_a_generated_scene_by_name(tmp_path, monkeypatch, capsys):
+    """A generated scene of the scene suite is a mesh name like the shipped ones: ``jrt
+    render room-small`` renders the small room and writes room-small.png; ``jrt trace``
+    reads it the same way (rays from the room's middle hit its walls)."""
+    from skimage import io
+
+    from jrt.scenes import scene_mesh
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["render", "room-small", "--width", "24", "--height", "18",
+                 "--no-shadows"]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    room = scene_mesh("room", size="small")
+    assert f"room (small): {len(room.vertices):,} vertices, {len(room.faces):,} triangles" \
+        in printed and "-> room-small.png" in printed
+    image = io.imread(tmp_path / "room-small.png")
+    assert image.shape[:2] == (18, 24)
+    # Rays from the room's middle toward each wall all hit it.
+    origins = np.tile(room.vertices.mean(axis=0), (6, 1)).astype(np.float32)
+    directions = np.concatenate([np.eye(3), -np.eye(3)]).astype(np.float32)
+    np.savez(tmp_path / "rays.npz", origins=origins, directions=directions)
+    assert main(["trace", "room-small", str(tmp_path / "rays.npz"), "-o",
+                 str(tmp_path / "hits.npz")]) == 0, capsys.readouterr().err
+    assert (np.load(tmp_path / "hits.npz")["triangle"] >= 0).all()

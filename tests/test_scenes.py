@@ -133,5 +133,41 @@ def test_jrt_bench_takes_a_scene(tmp_path):
         "fandisk"
     with pytest.raises(SystemExit):
         parser.parse_args(["--scene", "stadium", "--mesh", "camel"])
+    # --scene-size overrides the size --quick implies; it needs a scene.
+    assert suite._resolve(parser.parse_args(["--scene", "herd", "--scene-size", "small"]))[
+        "mesh"] == "herd-small"
+    assert suite._resolve(parser.parse_args(["--quick", "--scene", "room", "--scene-size",
+                                             "full"])) == {**quick, "mesh": "room",
+                                                           "scene": "room"}
+    with pytest.raises(suite.BenchError, match="--scene-size applies to --scene"):
+        suite._resolve(parser.parse_args(["--scene-size", "small"]))
     with pytest.raises(SystemExit):
         parser.parse_args(["--scene", "arena"])
+
+
+@pytest.mark.parametrize("query", ["closest", "occluded"])
+def test_the_suites_mismatches_are_judged_by_the_float64_oracle(query):
+    """Where a structure and brute force differ, the suite's correctness record says which
+    one the float64 oracle sides with: here ray 0 hits the triangle and ray 1 misses it,
+    and the 'brute force' answers are made wrong on purpose for both."""
+    triangles = np.array([[[0, 0, 5], [1, 0, 5], [0, 1, 5]]], np.float64)
+    origins = np.array([[0.2, 0.2, 0], [2, 2, 0], [0.1, 0.1, 0]], np.float32)
+    directions = np.tile(np.float32([0, 0, 1]), (3, 1))
+    ray_set = suite.RaySet("camera", query, origins, directions, None, 3)
+    if query == "closest":
+        def answer(triangle):
+            return {"triangle": np.array(triangle), "t": np.zeros(3, np.float32)}
+        ours, brute = answer([0, -1, 0]), answer([-1, 0, 0])
+        embree = {"triangle": np.array([0, -1, 0])}
+    else:
+        ours, brute = {"occluded": np.array([True, False, True])}, \
+            {"occluded": np.array([False, True, True])}
+        embree = np.array([True, False, True])
+    idx = np.arange(3)
+    record = suite.correctness_record("bvh", ray_set, idx, ours, brute, embree, triangles)
+    assert record["mismatches"] == 2
+    assert record["oracle"] == {"rays": 2, "structure_right": 2, "brute_right": 0}
+    swapped = suite.correctness_record("bvh", ray_set, idx, brute, ours, embree, triangles)
+    assert swapped["oracle"] == {"rays": 2, "structure_right": 0, "brute_right": 2}
+    assert "oracle" not in suite.correctness_record("bvh", ray_set, idx, ours, ours, embree,
+                                                    triangles)

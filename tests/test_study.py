@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_study_reports_the_results_it_finds(tmp_path, capsys):
     shutil.copy(ROOT / "reports" / "camel" / "bench.json", tmp_path / "bench.json")
     assert main(["study", "-o", str(tmp_path),
-                 "--skip", "bench,stability,work_precision,inverse,renders"]) == 0
+                 "--skip", "bench,scenes,stability,work_precision,inverse,renders"]) == 0
     printed = capsys.readouterr().out
     assert "bench: skipped" in printed and "done" in printed
     readme = (tmp_path / "README.md").read_text()
@@ -36,7 +36,7 @@ def test_study_rejects_an_unknown_step(tmp_path):
 def test_study_with_nothing_to_report_says_so(tmp_path):
     with pytest.raises(SystemExit, match="no results"):
         main(["study", "-o", str(tmp_path), "--skip",
-              "bench,stability,work_precision,inverse,renders"])
+              "bench,scenes,stability,work_precision,inverse,renders"])
 
 
 def test_study_rejects_an_unknown_structure(tmp_path, capsys):
@@ -60,13 +60,18 @@ def test_quick_study_end_to_end(quick_study, quick_study_structures):
 
     out, printed = quick_study
     print(printed[-2000:])
-    for step in ("bench", "stability", "work_precision", "inverse", "renders"):
+    for step in ("bench", "scenes", "stability", "work_precision", "inverse", "renders"):
         assert f"[study] {step}: " in printed and f"{step}: skipped" not in printed
     bench = json.loads((out / "bench.json").read_text())
-    validate(bench)
-    benched = {r.get("structure") for r in bench["records"]}
-    # Of the engine's structures, exactly those asked for (brute force runs anyway).
-    assert benched & set(accel.names(engine=True)) == set(quick_study_structures), benched
+    stadium = json.loads((out / "scenes" / "stadium.json").read_text())
+    assert sorted(p.name for p in (out / "scenes").iterdir()) == ["stadium.json"]
+    assert (stadium["parameters"]["scene"], stadium["parameters"]["mesh"]) == (
+        "stadium", "stadium-small")
+    for run in (bench, stadium):
+        validate(run)
+        benched = {r.get("structure") for r in run["records"]}
+        # Of the engine's structures, exactly those asked for (brute force runs anyway).
+        assert benched & set(accel.names(engine=True)) == set(quick_study_structures), benched
     stability = json.loads((out / "stability.json").read_text())
     assert stability["size"] == "quick"
     assert sorted(map(int, stability["cases"])) == list(CASES)
@@ -74,6 +79,7 @@ def test_quick_study_end_to_end(quick_study, quick_study_structures):
     assert json.loads((out / "work_precision.json").read_text())["records"]
     readme = (out / "README.md").read_text()
     for section in ("## The structures side by side", "### Per-pixel cost",
+                    "## The structures across scenes", "### The literature's claims",
                     "## Error against run time", "## Gradients: worked inverse problems",
                     "## Numerical stability", "## Renders"):
         assert section in readme, section
@@ -86,3 +92,16 @@ def test_quick_study_end_to_end(quick_study, quick_study_structures):
         assert (out / link).read_bytes()[:8] == PNG_SIGNATURE, link
     page = (out / "index.html").read_text()
     assert page.count("data:image/png;base64,") == len(pngs)
+
+
+def test_study_scenes_are_checked_and_in_the_suites_order(tmp_path, capsys):
+    from reports import study
+
+    parser = study.build_parser()
+    args = parser.parse_args(["--scenes", "room,stadium"])
+    assert args.scenes == ["stadium", "room"]
+    for bad in ("camel", "stadum"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--scenes", bad])
+        assert "allowed: bunny, teapot, fandisk, stadium, herd, room, slivers" in (
+            capsys.readouterr().err)
