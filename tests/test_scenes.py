@@ -171,3 +171,24 @@ def test_the_suites_mismatches_are_judged_by_the_float64_oracle(query):
     assert swapped["oracle"] == {"rays": 2, "structure_right": 0, "brute_right": 2}
     assert "oracle" not in suite.correctness_record("bvh", ray_set, idx, ours, ours, embree,
                                                     triangles)
+
+
+def test_the_build_benchmark_times_every_structure_beside_embree(tmp_path):
+    """``python -m benchmarks.builds``: each structure's and Embree's build times on a
+    scene, and the same structure as accel.build makes (its SAH cost)."""
+    import json
+
+    from benchmarks import builds
+
+    out = tmp_path / "builds.json"
+    builds.main(["--scenes", "slivers", "--size", "small", "--builds", "2", "--structures",
+                 "bvh,grid", "--json", str(out)])
+    (r,) = json.loads(out.read_text())["results"]
+    mesh = scene_mesh("slivers", size="small")
+    assert (r["scene"], r["triangles"]) == ("slivers", len(mesh.faces))
+    assert set(r["seconds"]) == {"embree", "bvh", "grid"}
+    assert all(len(v) == 2 and min(v) >= 0 for v in r["seconds"].values())
+    assert r["sah_cost"]["bvh"] == accel.build("bvh", mesh.vertices, mesh.faces).stats[
+        "sah_cost"]
+    with pytest.raises(SystemExit):
+        builds.main(["--scenes", "arena"])
