@@ -312,7 +312,7 @@ def _havran(runs: list[Bench]) -> str:
                  f"{num(float(np.median([v for _, v in steps])))}. Havran timed scalar C++ "
                  "traversals, where a kd-tree step is a few instructions; in jrt's engine every "
                  "step, of any structure, is one iteration of a loop over all the lanes, so the "
-                 "structure with fewer steps per ray wins")
+                 "number of steps per ray weighs more than what one step costs")
     return text + "."
 
 
@@ -338,8 +338,9 @@ def _stadium(runs: list[Bench]) -> str:
     if "octree" in stadium.structures:
         octree, octree_worst = relative(stadium, "octree")
         if octree is not None:
-            text += (f"; the octree, whose depth limit stops it before its cells reach the "
-                     f"camel's scale, fares alike: {num(octree)}x, {_whole(octree_worst)} tests")
+            text += (f"; the octree, whose depth limit (log4 of the triangle count) stops "
+                     f"it at cells larger than the camel, fares alike: {num(octree)}x, "
+                     f"{_whole(octree_worst)} tests")
     if camel is not None and {"grid", "bvh"} <= set(camel.structures):
         on_camel, camel_worst = relative(camel, "grid")
         if on_camel:
