@@ -28,7 +28,7 @@ The output folder is ``./study`` in the working directory unless ``-o`` names an
 
 Defaults take about 15 minutes on 2 cores (the full benchmark suite, the stability suite
 at its ``standard`` size, the work-precision study's quick points, both inverse problems at
-150 steps); ``--full`` runs the stability suite's full sweep, every work-precision point
+150 steps), and the scenes step about 7 more (404 s on a 2-core AMD EPYC); ``--full`` runs the stability suite's full sweep, every work-precision point
 and 300 inverse steps as well (more than 30
 minutes: what ``reports/camel/`` is published from); ``--quick`` (small ray sets, the
 19k camel where a step allows it, small images) about five minutes, and is what CI runs.
@@ -76,8 +76,8 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "stability suite, the work-precision study, the worked inverse problems (gradient "
         "descent through the differentiable renderer; needs optax) and renders of the "
         "built-in scenes, each written into DIR, then the report (README.md, index.html, "
-        "figures) from all of it. The default size takes about 15 minutes on 2 cores, "
-        "--full more than 30, --quick about 5.",
+        "figures) from all of it. The default size takes about 20 minutes on 2 cores (7 "
+        "of them the scenes), --full more than 30, --quick about 5.",
         epilog="The published study (reports/camel in the repository) is rewritten only by "
         "--publish, or by -o naming it with --full; any other size aimed at it is refused "
         "unless --force.")
