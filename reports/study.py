@@ -28,10 +28,11 @@ The output folder is ``./study`` in the working directory unless ``-o`` names an
 
 Defaults take about 15 minutes on 2 cores (the full benchmark suite, the stability suite
 at its ``standard`` size, the work-precision study's quick points, both inverse problems at
-150 steps), and the scenes step about 7 more (404 s on a 2-core AMD EPYC); ``--full`` runs the stability suite's full sweep, every work-precision point
-and 300 inverse steps as well (more than 30
-minutes: what ``reports/camel/`` is published from); ``--quick`` (small ray sets, the
-19k camel where a step allows it, small images) about five minutes, and is what CI runs.
+150 steps), and the scenes step about 7 more (404 s on a 2-core AMD EPYC); ``--full``
+runs the stability suite's full sweep, every work-precision point, 300 inverse steps and
+every scene at its full size as well (more than 30 minutes: what ``reports/camel/`` is
+published from); ``--quick`` (small ray sets, the 19k camel where a step allows it,
+small images) about five minutes, and is what CI runs.
 ``--structures`` limits the benchmark suite to some acceleration structures (brute
 force, its reference, always runs; the stability suite picks its own per case). A step
 that fails stops the study with its error; the JSON of the steps before it stays in the
@@ -72,9 +73,10 @@ CLOSEUP = {"above_centre": 0.22, "vfov": 11.0, "samples": 16}
 def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=prog,
-        description="The whole study of the camel in one command: the benchmark suite, the "
-        "stability suite, the work-precision study, the worked inverse problems (gradient "
-        "descent through the differentiable renderer; needs optax) and renders of the "
+        description="The whole study of the camel in one command: the benchmark suite (on "
+        "the camel and on the other scenes of the scene suite), the stability suite, the "
+        "work-precision study, the worked inverse problems (gradient descent through the "
+        "differentiable renderer; needs optax) and renders of the "
         "built-in scenes, each written into DIR, then the report (README.md, index.html, "
         "figures) from all of it. The default size takes about 20 minutes on 2 cores (7 "
         "of them the scenes), --full more than 30, --quick about 5.",
