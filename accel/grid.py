@@ -65,13 +65,13 @@ whose widened interval meets the triangle's bounds on each axis (``np.searchsort
 narrowed slab by slab (``_candidates``): per x slab of cells the part of the triangle
 inside the slab bounds its y and z cells, and per (x, y) column its part inside the y slab
 bounds the z cells further, so a long thin triangle gets about the cells it crosses, not
-every cell of its bounding box (the slivers scene, 1,000 needles: 421k candidates in the
-boxes, 0.6 s; 21k, 0.01 s, now; 50,000 needles: 738M, out of memory; 3.9M now). The
-candidate (triangle, cell) pairs, enumerated with ``np.repeat`` over those ranges, are
-tested with the separating-axis test (``overlap_sat``: ``triangles_overlap_boxes``'s decisions on
-component rows, an order of magnitude faster; a triangle with a single candidate cell
-lies in it and skips the test); one sort of the keys (cell, triangle row) orders the
-surviving pairs by cell, rows ascending within a cell.
+every cell of its bounding box (the slivers scene, 1,000 needles: 21k candidates where
+their boxes hold 421k; 50,000 needles: 3.9M where the boxes hold 738M, more than the
+memory). The candidate (triangle, cell) pairs, enumerated with ``np.repeat`` over those
+ranges, are tested with the separating-axis test (``accel.geometry.overlap_rows``; a
+triangle with a single candidate cell lies in it and skips the test); one sort of the
+keys (cell, triangle row) orders the surviving pairs by cell, rows ascending within a
+cell.
 
 **Layout** (``layout`` is empty: the resolution and the box travel in ``grid``, so every
 grid of the same array shapes shares one compiled traversal):
@@ -135,6 +135,7 @@ from accel.geometry import (
     CELL_MARGIN,
     degenerate_mask,
     local_frame,
+    overlap_rows,
     triangle_vertices,
     widen_boxes,
 )
@@ -156,81 +157,6 @@ GRID_FLOATS = 16
 #: Candidate (triangle, cell) pairs tested per separating-axis call (bounds the memory of
 #: the float64 temporaries to a few hundred MB).
 _CHUNK = 1 << 20
-#: Pairs per block of the separating-axis test (``overlap_sat``): small enough for its
-#: temporaries (8 bytes a pair each) to stay in a core's cache.
-_SAT_BLOCK = 1 << 15
-
-
-def overlap_sat(corners: np.ndarray, lo, hi) -> np.ndarray:
-    """bool [K]: ``accel.geometry.triangles_overlap_boxes`` on component rows, faster.
-
-    ``corners`` float64 [9, K] (row ``3 i + a``: corner i's coordinate on axis a), ``lo``
-    and ``hi`` three float64 [K] rows (or [3, K]). The same separating axes (the box's
-    faces, the triangle's normal, the nine box-edge x triangle-edge crosses) with the same
-    float64 operations in the same order: ``unit_a x e`` has one zero and two signed
-    components of ``e``, so its projections are two products, and the sums run in
-    ``np.sum``'s order, so every decision is ``triangles_overlap_boxes``'s. Faster because
-    it works on contiguous [K] rows (no [K, 3] reductions, ``np.cross`` or ``einsum``), and
-    each axis is tested only on the pairs no earlier axis separated (the answer is the
-    AND of all the axes, so the order of elimination does not change it). The pairs go
-    through in blocks of ``_SAT_BLOCK``, whose few dozen temporaries stay in the cache
-    (on the camel's octree this halved the time of the test).
-    """
-    out = np.empty(corners.shape[1], bool)
-    for start in range(0, corners.shape[1], _SAT_BLOCK):
-        part = slice(start, start + _SAT_BLOCK)
-        out[part] = _overlap_block(corners[:, part], [b[part] for b in lo],
-                                   [b[part] for b in hi])
-    return out
-
-
-def _overlap_block(corners, lo, hi):
-    """``overlap_sat`` on one block."""
-    k = corners.shape[1]
-    centre = [0.5 * (lo[a] + hi[a]) for a in range(3)]
-    half = [0.5 * (hi[a] - lo[a]) for a in range(3)]
-    v = [corners[3 * i + a] - centre[a] for i in range(3) for a in range(3)]
-    # 1. The box's faces: the triangle's bounds against the box's.
-    keep = np.ones(k, bool)
-    for a in range(3):
-        keep &= np.minimum(np.minimum(v[a], v[3 + a]), v[6 + a]) <= half[a]
-        keep &= np.maximum(np.maximum(v[a], v[3 + a]), v[6 + a]) >= -half[a]
-    alive = np.flatnonzero(keep)
-    v = [c[alive] for c in v]
-    hx, hy, hz = (h[alive] for h in half)
-    # 2. The triangle's normal, e0 x e1 (np.cross's products and order).
-    e = [[v[3 * ((j + 1) % 3) + a] - v[3 * j + a] for a in range(3)] for j in range(3)]
-    (e0x, e0y, e0z), (e1x, e1y, e1z) = e[0], e[1]
-    nx, ny, nz = e0y * e1z - e0z * e1y, e0z * e1x - e0x * e1z, e0x * e1y - e0y * e1x
-    radius = np.abs(nx) * hx + np.abs(ny) * hy + np.abs(nz) * hz
-    offset = nx * v[0] + ny * v[1] + nz * v[2]
-    ok = np.abs(offset) <= radius
-    # 3. unit_a x e_j: x: (0, -ez, ey); y: (ez, 0, -ex); z: (-ey, ex, 0). The pairs still
-    # undecided are gathered after each group of three axes (and after the normal's).
-    for a in range(3):
-        sel = np.flatnonzero(ok)
-        alive, ok = alive[sel], ok[sel]
-        v = [c[sel] for c in v]
-        e = [[c[sel] for c in ej] for ej in e]
-        hx, hy, hz = hx[sel], hy[sel], hz[sel]
-        for j in range(3):
-            ex, ey, ez = e[j]
-            if a == 0:
-                p = [ey * v[3 * i + 2] - ez * v[3 * i + 1] for i in range(3)]
-                r = np.abs(ez) * hy + np.abs(ey) * hz
-            elif a == 1:
-                p = [ez * v[3 * i] - ex * v[3 * i + 2] for i in range(3)]
-                r = np.abs(ez) * hx + np.abs(ex) * hz
-            else:
-                p = [ex * v[3 * i + 1] - ey * v[3 * i] for i in range(3)]
-                r = np.abs(ey) * hx + np.abs(ex) * hy
-            ok &= np.minimum(np.minimum(p[0], p[1]), p[2]) <= r
-            ok &= np.maximum(np.maximum(p[0], p[1]), p[2]) >= -r
-    keep[:] = False
-    keep[alive[ok]] = True
-    return keep
-
-
 def _check_params(density, max_resolution, max_skip):
     if isinstance(density, bool) or not (
             isinstance(density, int | float | np.integer | np.floating)
@@ -480,7 +406,7 @@ def _references(local: np.ndarray, row: np.ndarray):
     for start in range(0, multi.shape[0], _CHUNK):
         sel = multi[start:start + _CHUNK]
         t, c = tri[sel], (ix[sel], iy[sel], iz[sel])
-        keep[sel] = overlap_sat(v[:, t], [intervals[a][0][c[a]] for a in range(3)],
+        keep[sel] = overlap_rows(v[:, t], [intervals[a][0][c[a]] for a in range(3)],
                                 [intervals[a][1][c[a]] for a in range(3)])
     # Sorted by cell, rows ascending within a cell: one sort of the unique keys
     # cell * T + row (faster than a stable argsort and two gathers).

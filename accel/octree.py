@@ -21,8 +21,8 @@ and gives a byte of eight child bits, combined over the axes by bitwise AND (no 
 arrays): a child the triangle's box misses is rejected; one that contains the triangle's
 box, one of its corners or one of its edges' midpoints certainly overlaps it; the
 separating-axis test decides the rest (about a quarter of the candidates on the camel), in
-``accel.grid.overlap_sat``, which takes the same decisions as ``triangles_overlap_boxes``
-on component rows, an order of magnitude faster. One sort of the keys (child, triangle)
+``accel.geometry.overlap_rows`` (on component rows: an order of magnitude faster than on
+[pairs, 3, 3] arrays). One sort of the keys (child, triangle)
 groups the surviving pairs for the next level. A level goes through in blocks of about
 2^15 pairs, cut between parents, whose temporaries stay in the cache. A level costs
 O(P log P) for its P pairs, and P grows about as fast as N per level for a surface mesh,
@@ -111,10 +111,10 @@ from accel.geometry import (
     leaf_bits_for,
     leaf_references,
     local_corners,
+    overlap_rows,
     reference_margin,
     triangle_vertices,
 )
-from accel.grid import overlap_sat
 from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
 
@@ -189,7 +189,7 @@ def _children_pairs(points, tlo, thi, own, corners, wlo, whi, parent, tri):
     ``accel.geometry.reference_margin``); ``parent``, ``tri``: the pairs of the splitting
     cells (``parent`` the pair's rank among them), grouped by parent, triangles ascending.
     ``points`` [3, T, 6]: per axis, each triangle's corners and edge midpoints (exact in
-    float64); ``corners`` [9, T] the corners by component (``accel.grid.overlap_sat``).
+    float64); ``corners`` [9, T] the corners by component (``accel.geometry.overlap_rows``).
 
     A child's widened box is, on each axis, its parent's lower or upper widened
     interval, so every test runs per axis and side on the [P] pairs and becomes a byte
@@ -238,7 +238,7 @@ def _children_pairs(points, tlo, thi, own, corners, wlo, whi, parent, tri):
     if undecided.size:
         u_pair, u_child = pair[undecided], child[undecided]
         u_m = m[u_pair]
-        overlap[undecided] = overlap_sat(
+        overlap[undecided] = overlap_rows(
             corners[:, tri[u_pair]], [wlo[u_child, a] - u_m for a in range(3)],
             [whi[u_child, a] + u_m for a in range(3)])
     # Grouped by child, triangles ascending within a child (as the root lists them, and

@@ -82,7 +82,7 @@ from benchmarks.peers import (
 )
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 from jrt.interaction import face_forward, surface_interaction
-from jrt.scenes import GENERATED, SCENES, SIZES, scene_mesh
+from jrt.scenes import GENERATED_LABELS, SCENES, SIZES, parse_label, scene_label, scene_mesh
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -637,13 +637,11 @@ def _resolve(args) -> dict:
               for k, v in DEFAULTS[mode].items()}
     mesh_arg = args.mesh
     scene = getattr(args, "suite_scene", None)
-    size = getattr(args, "scene_size", None) or ("small" if args.quick else "full")
-    if getattr(args, "scene_size", None) and scene is None:
+    asked = getattr(args, "scene_size", None)
+    if asked and scene is None:
         raise BenchError("--scene-size applies to --scene NAME (a scene of jrt.scenes)")
-    if scene == "camel":
-        mesh_arg = "camel-19k" if size == "small" else "camel"
-    elif scene is not None:  # labelled "stadium", or "stadium-small" where it has two sizes
-        mesh_arg = scene + ("-small" if size == "small" and scene in GENERATED else "")
+    if scene is not None:  # labelled "stadium", or "stadium-small" where it has two sizes
+        mesh_arg = scene_label(scene, asked or ("small" if args.quick else "full"))
     elif mesh_arg is None:
         mesh_arg = "camel-19k" if args.quick and jrt.data.has_camel("camel-19k") else "camel"
     params["mesh"] = mesh_arg
@@ -652,9 +650,9 @@ def _resolve(args) -> dict:
 
 
 def _load(mesh_arg: str):
-    name = mesh_arg.removesuffix("-small")
-    if name in GENERATED:  # a generated scene of jrt.scenes, "-small" its small size
-        return scene_mesh(name, size="small" if mesh_arg.endswith("-small") else "full")
+    if mesh_arg in GENERATED_LABELS:  # a generated scene of jrt.scenes, at either size
+        name, size = parse_label(mesh_arg)
+        return scene_mesh(name, size=size)
     try:
         if mesh_arg in jrt.data.MESHES:
             return jrt.load_mesh(jrt.camel_path(mesh_arg))

@@ -37,7 +37,7 @@ from jrt.data import MESHES, mesh_path
 from jrt.kernels import DEFAULT_KERNEL, KERNELS
 from jrt.mesh import MeshError, MeshWarning, load_mesh
 from jrt.rays_io import RaysFileError, load_rays, save_hits
-from jrt.scenes import GENERATED, scene_mesh
+from jrt.scenes import GENERATED_LABELS, parse_label, scene_mesh
 
 #: The command line's own description (plain text: argparse prints it as it is).
 DESCRIPTION = ("jrt traces rays through triangle meshes with JAX. 'jrt trace' and 'jrt render' "
@@ -71,20 +71,15 @@ STUDY_COMMANDS = ("bench", "stability", "study", "report")
 DEFAULT_SCENE = "camel"
 
 
-#: Mesh names besides the shipped meshes: the generated scenes of the scene suite
-#: (``jrt.scenes``), and their small sizes as ``NAME-small``.
-SCENE_MESHES = tuple(n + size for n in GENERATED for size in ("", "-small"))
-
-
 def _mesh(arg: str | None):
     """A path, a short name of a shipped mesh (``jrt.data.MESHES``: camel, camel-19k,
-    bunny, teapot, fandisk) or a generated scene of the scene suite (:data:`SCENE_MESHES`:
-    stadium, herd, room, slivers, each also ``-small``)."""
+    bunny, teapot, fandisk) or a generated scene of the scene suite
+    (``jrt.scenes.GENERATED_LABELS``: stadium, herd, room, slivers, each also ``-small``)."""
     if arg is None or arg in MESHES:
         return load_mesh(mesh_path(arg or "camel"))
-    if arg in SCENE_MESHES:
-        return scene_mesh(arg.removesuffix("-small"),
-                          size="small" if arg.endswith("-small") else "full")
+    if arg in GENERATED_LABELS:
+        name, size = parse_label(arg)
+        return scene_mesh(name, size=size)
     return load_mesh(arg)
 
 
@@ -92,7 +87,7 @@ def _mesh_stem(arg: str | None) -> str:
     """The default name of a mesh's output files: its short name, or its file's stem."""
     if arg is None:
         return "camel"
-    if arg in MESHES or arg in SCENE_MESHES:
+    if arg in MESHES or arg in GENERATED_LABELS:
         return arg
     name = Path(arg).name
     return name.split(".")[0] or "render"
@@ -387,7 +382,7 @@ def build_parser(describe: bool = False) -> argparse.ArgumentParser:
                            epilog=EPILOG)
     trace.add_argument("mesh", help="mesh file (OFF/OBJ/PLY/STL, or .gz of one), a "
                        f"shipped mesh: {', '.join(MESHES)}, or a generated scene: "
-                       f"{', '.join(SCENE_MESHES)}")
+                       f"{', '.join(GENERATED_LABELS)}")
     trace.add_argument("rays",
                        help=".npz with origins, directions float32 [N,3], optional tmax [N]")
     trace.add_argument("-o", "--output", required=True, help="output .npz of hits")
@@ -401,7 +396,7 @@ def build_parser(describe: bool = False) -> argparse.ArgumentParser:
         "Whitted) to a PNG", epilog=EPILOG)
     render.add_argument("mesh", nargs="?", default=None,
                         help=f"mesh file, a shipped mesh: {', '.join(MESHES)}, or a "
-                        f"generated scene: {', '.join(SCENE_MESHES)} (default camel)")
+                        f"generated scene: {', '.join(GENERATED_LABELS)} (default camel)")
     render.add_argument("--scene", default=None, metavar="NAME|FILE",
                         help="render a scene with the Whitted tree: a built-in name (camel, "
                         "glass-camel, mirror-camel) or a .toml scene file")

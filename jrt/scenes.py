@@ -196,5 +196,28 @@ def scene_mesh(name: str, *, size: str = "full") -> Mesh:
     return load_mesh(mesh_path(name))
 
 
-__all__ = ["DESCRIPTIONS", "GENERATED", "SCENES", "SIZES", "herd", "room", "scene_mesh", "slivers",
-           "stadium"]
+def scene_label(name: str, size: str = "full") -> str:
+    """The short name of scene ``name`` at ``size``, as commands and results name it:
+    ``NAME``, ``NAME-small`` for a generated scene's small size, ``camel-19k`` for the
+    camel's (the other shipped meshes have one size)."""
+    if size == "small" and name in GENERATED:
+        return f"{name}-small"
+    return "camel-19k" if (name, size) == ("camel", "small") else name
+
+
+def parse_label(label: str) -> tuple[str, str] | None:
+    """``(scene, size)`` of a short name from :func:`scene_label`; None for any other."""
+    for name in SCENES:
+        for size in SIZES:
+            if scene_label(name, size) == label:
+                return name, size
+    return None
+
+
+#: The short names of the generated scenes, full and small (``stadium``,
+#: ``stadium-small``, ...): mesh names besides the shipped meshes'.
+GENERATED_LABELS = tuple(scene_label(n, size) for n in GENERATED for size in SIZES)
+
+
+__all__ = ["DESCRIPTIONS", "GENERATED", "GENERATED_LABELS", "SCENES", "SIZES", "herd",
+           "parse_label", "room", "scene_label", "scene_mesh", "slivers", "stadium"]

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import accel
+from jrt.scenes import parse_label
 from reports.document import ReportError, plural
 
 #: The commands that produce each kind of results (shown when a file does not record its own).
@@ -53,6 +54,21 @@ def median(value):
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
     return float(value) if math.isfinite(value) else None
+
+
+def geomean(values) -> float | None:
+    """The geometric mean of the positive values; None where there are none."""
+    values = [v for v in values if v is not None and v > 0]
+    if not values:
+        return None
+    return math.exp(sum(math.log(v) for v in values) / len(values))
+
+
+def scene_size(params: dict) -> str:
+    """The size (``jrt.scenes.SIZES``) of a benchmark run's mesh: ``small`` for a small
+    scene's label (``stadium-small``, ``camel-19k``), ``full`` otherwise."""
+    parsed = parse_label(str(params.get("mesh", "")))
+    return parsed[1] if parsed else "full"
 
 
 def dicts(x) -> list[dict]:
@@ -351,7 +367,7 @@ def bench_command(data: dict, path: Path) -> str:
     if p.get("quick"):
         parts.append("--quick")
     if isinstance(p.get("scene"), str):  # a scene run: --scene NAME, its size if not implied
-        small = str(p.get("mesh", "")).endswith("-small") or p.get("mesh") == "camel-19k"
+        small = scene_size(p) == "small"
         parts += ["--scene", p["scene"]]
         if small != bool(p.get("quick")):
             parts += ["--scene-size", "small" if small else "full"]

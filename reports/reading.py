@@ -18,6 +18,7 @@ from reports.inputs import (
     build_mib,
     count,
     dicts,
+    geomean,
     median,
     not_fitted,
     preferred_order,
@@ -88,14 +89,6 @@ def _place(rank: tuple[int, int]) -> str:
     return str(rank[0]) if rank[0] == rank[1] else f"{rank[0]}–{rank[1]}"
 
 
-def _geomean(values) -> float | None:
-    """The geometric mean of the positive values; None where there are none."""
-    values = [v for v in values if v is not None and v > 0]
-    if not values:
-        return None
-    return math.exp(sum(math.log(v) for v in values) / len(values))
-
-
 def _ranking(b: Bench) -> dict[str, tuple[float, tuple[float, float] | None]]:
     """Per structure, fastest first: the geometric mean over the ray sets of its median
     Mrays/s, and the geometric means of its per-set min and max (None where a set has no
@@ -108,9 +101,9 @@ def _ranking(b: Bench) -> dict[str, tuple[float, tuple[float, float] | None]]:
         if not recs:
             continue
         spreads = [rate_spread(r) for r in recs]
-        out[n] = (_geomean(median(r.get("mrays_per_s")) for r in recs),
-                  None if None in spreads else (_geomean(lo for lo, _ in spreads),
-                                                _geomean(hi for _, hi in spreads)))
+        out[n] = (geomean(median(r.get("mrays_per_s")) for r in recs),
+                  None if None in spreads else (geomean(lo for lo, _ in spreads),
+                                                geomean(hi for _, hi in spreads)))
     return dict(sorted(out.items(), key=lambda x: -x[1][0]))
 
 

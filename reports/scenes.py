@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import cost_model
-from jrt.scenes import DESCRIPTIONS, SCENES
+from jrt.scenes import DESCRIPTIONS, SCENES, parse_label
 from reports.document import Doc, join_words, num
 from reports.figures import _colour, _new_figure, _save
 from reports.inputs import (
@@ -40,7 +40,9 @@ from reports.inputs import (
     Inputs,
     bench_indicative,
     build_mib,
+    geomean,
     median,
+    scene_size,
     trace_counter,
 )
 
@@ -56,12 +58,7 @@ def scene_of(b: Bench) -> str:
     if isinstance(scene, str):
         return scene
     mesh = str(b.params.get("mesh", ""))
-    return "camel" if mesh in ("camel", "camel-19k") else mesh
-
-
-def _size(b: Bench) -> str:
-    mesh = str(b.params.get("mesh", ""))
-    return "small" if mesh.endswith("-small") or mesh == "camel-19k" else "full"
+    return (parse_label(mesh) or (mesh,))[0]
 
 
 def scene_runs(inputs: Inputs) -> list[Bench]:
@@ -79,9 +76,7 @@ def scene_runs(inputs: Inputs) -> list[Bench]:
 
 def geomean_ratio(b: Bench, name: str) -> float | None:
     """The geometric mean over the run's ray sets of ``name``'s rate relative to Embree."""
-    ratios = [median(b.traces.get((name, s), {}).get("ratio_to_embree")) for s in b.sets]
-    ratios = [r for r in ratios if r is not None and r > 0]
-    return math.exp(sum(map(math.log, ratios)) / len(ratios)) if ratios else None
+    return geomean(median(b.traces.get((name, s), {}).get("ratio_to_embree")) for s in b.sets)
 
 
 def _structures(runs: list[Bench]) -> list[str]:
@@ -119,7 +114,8 @@ def spearman(xs, ys) -> float | None:
 
 def _label(b: Bench) -> str:
     scene = scene_of(b)
-    return f"{scene} (small)" if _size(b) == "small" and scene in SCENES else scene
+    small = scene_size(b.params) == "small"
+    return f"{scene} (small)" if small and scene in SCENES else scene
 
 
 def section_scenes(doc: Doc, inputs: Inputs, out: Path) -> bool:
