@@ -51,13 +51,19 @@ def single(setup, params=None):
 
 
 def assert_equal_to_singles(radiance, stats, singles):
-    """Item b is single render b to float32 rounding (rtol 1e-5, atol 1e-6 of the peak),
-    and counts its rays as that render does."""
+    """Item b is single render b to float32 rounding (rtol 1e-4, atol 1e-6 of the peak),
+    and counts its rays as that render does.
+
+    The batch and the single render are separate compiled programs, which XLA:CPU fuses
+    and contracts into multiply-adds differently (by program and by the host's vector
+    width); the glass camel's refractions amplify an ulp of a ray's direction: on an AMD
+    EPYC Zen 2 host one pixel in 1,728 differed by 3.9e-5 of its value. A wrong item (its
+    camera, its Cauchy B, its band) differs by percents."""
     assert radiance.shape == (len(singles), H, W, singles[0][0].shape[-1])
     assert radiance.dtype == np.float64
     for b, (item, (expected, st)) in enumerate(zip(radiance, singles, strict=True)):
         peak = np.abs(expected).max()
-        np.testing.assert_allclose(item, expected, rtol=1e-5, atol=1e-6 * peak,
+        np.testing.assert_allclose(item, expected, rtol=1e-4, atol=1e-6 * peak,
                                    err_msg=f"item {b}")
         assert stats.rays_per_level[b] == st.rays_per_level
         assert stats.shadow_rays[b] == st.shadow_rays
