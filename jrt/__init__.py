@@ -8,6 +8,7 @@ import importlib as _importlib
 
 from jrt import _xla  # (must run before JAX starts its backend)
 from jrt._xla import ImportOrderWarning
+from jrt.all_hits import AllHits, all_hits
 from jrt.camera import Camera, camera_rays, frame_mesh
 from jrt.data import camel_path, data_dir, mesh_path
 from jrt.engine import Counters, StackOverflowError, TraversalError
@@ -34,6 +35,7 @@ def __getattr__(name: str):
 
 __all__ = [
     "KERNELS",
+    "AllHits",
     "Camera",
     "Counters",
     "Hits",
@@ -41,6 +43,7 @@ __all__ = [
     "Mesh",
     "MeshError",
     "MeshWarning",
+    "all_hits",
     "camel_path",
     "camera_rays",
     "closest_hit",

@@ -149,6 +149,53 @@ def occluded(triangles, origins, directions, tmax, *, kernel: str,
     return lax.map(per_ray_chunk, (o, d, tm, live)).reshape(-1)[:n]
 
 
+@functools.partial(jax.jit, static_argnames=("kernel", "capacity", "ray_chunk", "tri_chunk"))
+def all_rows(triangles, origins, directions, tmax, *, kernel: str, capacity: int,
+             ray_chunk: int = RAY_CHUNK, tri_chunk: int = TRI_CHUNK):
+    """Every ray's hits among ``triangles`` [T, 3, 3]: ``(rows, count)``, int32 [N, K]
+    (K = ``capacity``) and [N]: the rows hit at ``0 < t < tmax``, the K nearest of them
+    (by ``t``, then row; -1 in the free slots), and how many rows it hits (each row once:
+    brute force tests each once). What :func:`jrt.all_hits` makes its record from, as
+    the engine's traversals do (``jrt.engine``'s ``capacity``)."""
+    fn = get_kernel(kernel)
+    n = origins.shape[0]
+    o, d, tm = _pad_rays(origins, directions, tmax, ray_chunk)
+    tri_chunks, bases = _chunk_triangles(triangles, tri_chunk)
+    keep = min(capacity, tri_chunk)
+
+    def per_ray_chunk(args):
+        o, d, tm = args
+
+        def body(carry, chunk):
+            list_t, list_row, count = carry
+            tris, base = chunk
+            t = _chunk_t(fn, o, d, tm, tris).T  # [ray_chunk, tri_chunk]
+            count = count + jnp.sum(t < jnp.inf, axis=1, dtype=jnp.int32)
+            # The chunk's nearest (lax.top_k: of equal values the lower index first), then
+            # the nearest of those and the list's (the list's rows are the lower ones).
+            near_t, near = lax.top_k(-t, keep)
+            both_t = jnp.concatenate([list_t, -near_t], axis=1)
+            both_row = jnp.concatenate(
+                [list_row, jnp.where(near_t > -jnp.inf, near.astype(jnp.int32) + base, -1)],
+                axis=1)
+            _, pick = lax.top_k(-both_t, capacity)
+            return (jnp.take_along_axis(both_t, pick, axis=1),
+                    jnp.take_along_axis(both_row, pick, axis=1), count), None
+
+        init = (jnp.full((o.shape[0], capacity), jnp.inf, o.dtype),
+                jnp.full((o.shape[0], capacity), -1, jnp.int32),
+                jnp.zeros(o.shape[0], jnp.int32))
+
+        def scan(_):
+            (_, rows, count), _ = lax.scan(body, init, (tri_chunks, bases))
+            return rows, count
+
+        return lax.cond(jnp.any(tm > 0), scan, lambda _: init[1:], None)
+
+    rows, count = lax.map(per_ray_chunk, (o, d, tm))
+    return rows.reshape(-1, capacity)[:n], count.reshape(-1)[:n]
+
+
 def compiled_programs() -> int:
     """How many closest-hit programs of brute force this process holds compiled (one per
     ray count, triangle count and kernel), as :func:`jrt.engine.compiled_programs`."""

@@ -357,7 +357,7 @@ def _select(mask, new, old):
 
 
 def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, stack_size,
-               counters, references, rows_out=False):
+               counters, references, rows_out=False, capacity=0):
     """All rays of ``rays`` [n, 7] (see :func:`_pack_rays`) through one device's lanes.
 
     One iteration: refill the lanes that finished (write their winner, take the next
@@ -367,6 +367,14 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     carries as few arrays as it can: XLA:CPU runs each elementwise update of a carried
     array as its own pass over the lanes, and those passes, not the arithmetic, bound
     the iteration.
+
+    With ``capacity`` K > 0 (all hits, :func:`jrt.all_hits`) nothing is culled by a hit:
+    every lane keeps a list of the distinct rows it hit (the K nearest, by the loop's
+    ``t``) and how many distinct rows it hit, and the result is ``(rows [n, K], count
+    [n])`` instead of the hit record. A row met again (a kd-tree, grid, octree or BSP tree
+    references a triangle from every leaf it overlaps) is recognised while the list holds
+    it; once a ray has more than K hits an evicted row met again is counted again, so the
+    count is then an upper bound (the caller retraces with room for it).
     """
     fn = get_kernel(kernel)
     n = rays.shape[0]
@@ -393,6 +401,10 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         }
         if counters:
             lane["count"] = jnp.zeros((lanes, 3), jnp.int32)
+        if capacity:
+            lane["list_t"] = jnp.full((lanes, capacity), jnp.inf, jnp.float32)
+            lane["list_row"] = jnp.full((lanes, capacity), -1, jnp.int32)
+            lane["hit_count"] = jnp.zeros(lanes, jnp.int32)
         return lane
 
     # The queue: rays that can hit, in order. A ray that misses the box of all the
@@ -466,8 +478,10 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         "iteration": jnp.int32(0),
         # The winning row of every ray (-1: a miss, or not traced: outside the box), and
         # the lanes' spare slots.
-        "out": jnp.full(n + lanes, -1, jnp.int32),
+        "out": jnp.full((n + lanes, capacity) if capacity else (n + lanes,), -1, jnp.int32),
     }
+    if capacity:
+        state["out_hits"] = jnp.zeros(n + lanes, jnp.int32)
     if counters:
         state["out_count"] = jnp.zeros((n + lanes, 3), jnp.int32)
 
@@ -483,7 +497,10 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         done = finished(s)
         # Lanes with nothing to write aim at their own slot past the end (unique indices).
         target = jnp.where(done, s["ray_id"], n + lane_index)
-        new = dict(s, out=s["out"].at[target].set(s["best_row"], unique_indices=True))
+        new = dict(s, out=s["out"].at[target].set(
+            s["list_row"] if capacity else s["best_row"], unique_indices=True))
+        if capacity:
+            new["out_hits"] = s["out_hits"].at[target].set(s["hit_count"], unique_indices=True)
         if counters:
             new["out_count"] = s["out_count"].at[target].set(s["count"], unique_indices=True)
         rank = jnp.cumsum(done, dtype=jnp.int32) - 1
@@ -494,7 +511,10 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         return new
 
     def best_bound(s, ray):
-        """The distance a hit must beat: the best hit's, or the ray's tmax before one."""
+        """The distance a hit must beat: the best hit's, or the ray's tmax before one
+        (always the ray's tmax when every hit is wanted)."""
+        if capacity:
+            return ray.tmax
         return jnp.where(s["best_id"] >= 0, s["best_t"], ray.tmax)
 
     def step(s, ray):
@@ -550,12 +570,15 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         t = computed_once(jnp.any(testing),
                           lambda o, d, tri: fn(o, d, tri[:, 0], tri[:, 1], tri[:, 2])[0],
                           ray.origin, ray.direction, tri)
-        best_t, best_id = s["best_t"], s["best_id"]
-        better = testing & (t < ray.tmax) & prefer(t, face, best_t, best_id)
-        new = dict(s, best_t=jnp.where(better, t, best_t),
-                   best_id=jnp.where(better, face, best_id),
-                   best_row=jnp.where(better, row, s["best_row"]),
-                   cursor=s["cursor"] + testing.astype(jnp.int32))
+        if capacity:
+            new = _collect(s, t, row, testing & (t < ray.tmax), capacity)
+        else:
+            best_t, best_id = s["best_t"], s["best_id"]
+            better = testing & (t < ray.tmax) & prefer(t, face, best_t, best_id)
+            new = dict(s, best_t=jnp.where(better, t, best_t),
+                       best_id=jnp.where(better, face, best_id),
+                       best_row=jnp.where(better, row, s["best_row"]))
+        new["cursor"] = s["cursor"] + testing.astype(jnp.int32)
         if counters:
             zero = jnp.zeros_like(testing)
             new["count"] = s["count"] + jnp.stack([zero, testing, zero], 1).astype(jnp.int32)
@@ -575,8 +598,11 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
     s = lax.while_loop(lambda s: jnp.any(s["ray_id"] < n) & (s["iteration"] < budget),
                        body, state)
     rows = s["out"][:n]
-    hits = winner_hits(fn, rays, triangles, triangle_ids, rows)
-    if rows_out:  # the winners' rows as well (jrt.trace's derivative rule reads them)
+    if capacity:
+        hits = (rows, s["out_hits"][:n])
+    else:
+        hits = winner_hits(fn, rays, triangles, triangle_ids, rows)
+    if rows_out and not capacity:  # the winners' rows too (jrt.trace's derivative rule)
         hits = (hits, rows)
     count = s["out_count"][:n] if counters else None
     # The rays' validity (ray_problems), from the packed rows: one place for one device
@@ -586,6 +612,25 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
               | jnp.where(jnp.any(s["ray_id"] < n), jnp.int32(STATUS_UNFINISHED), zero)
               | _bad_rays_status(rays[:, 0:3], rays[:, 3:6], rays[:, 6]))
     return hits, count, status
+
+
+def _collect(s, t, row, hit, capacity):
+    """The all-hits leaf test's update of the lanes ``s``: a ``hit`` [L] on ``row`` at
+    ``t`` joins the lane's list unless the list holds that row already; into a free slot,
+    or, once the list is full, in place of its farthest entry if nearer (the list keeps
+    the K nearest). The lane's count grows by every hit on a row not in the list."""
+    new_hit = hit & ~jnp.any(s["list_row"] == row[:, None], axis=1)
+    count = s["hit_count"]
+    full = count >= capacity
+    far = jnp.argmax(s["list_t"], axis=1).astype(jnp.int32)
+    far_t = jnp.max(s["list_t"], axis=1)
+    slot = jnp.where(full, far, count)
+    write = new_hit & (~full | (t < far_t))
+    at = write[:, None] & (lax.broadcasted_iota(jnp.int32, s["list_row"].shape, 1)
+                           == slot[:, None])
+    return dict(s, list_t=jnp.where(at, t[:, None], s["list_t"]),
+                list_row=jnp.where(at, row[:, None], s["list_row"]),
+                hit_count=count + new_hit.astype(jnp.int32))
 
 
 def cpu_devices() -> list:
@@ -601,9 +646,9 @@ def compiled_programs() -> int:
 
 @functools.partial(jax.jit, static_argnames=(
     "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices",
-    "rows_out"))
+    "rows_out", "capacity"))
 def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, lanes,
-              stack_size, counters, devices, rows_out=False):
+              stack_size, counters, devices, rows_out=False, capacity=0):
     n = origins.shape[0]
     if arrays["triangles"].shape[0] == 0:
         # No triangle at all (an empty or all-degenerate mesh): one zero triangle, which
@@ -613,7 +658,8 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
     references = arrays.get("references")
     run = functools.partial(
         _run_lanes, traversal, kernel=kernel, any_hit=any_hit, lanes=lanes,
-        stack_size=stack_size, counters=counters, references=references, rows_out=rows_out)
+        stack_size=stack_size, counters=counters, references=references, rows_out=rows_out,
+        capacity=capacity)
     if devices is None or len(devices) == 1 or n < 2 * len(devices):
         return run(arrays, _pack_rays(origins, directions, tmax))
     k = len(devices)
@@ -662,13 +708,18 @@ def _traverse(arrays, origins, directions, tmax, *, traversal, kernel, any_hit, 
 
 def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel: str,
              any_hit: bool, lanes: int | None = None, stack_size: int = DEFAULT_STACK_SIZE,
-             counters: bool = False, devices=None, rows_out: bool = False):
+             counters: bool = False, devices=None, rows_out: bool = False,
+             capacity: int = 0):
     """Runs every ray through ``traversal``: (hits, counters or None, status).
 
     ``status`` is an int32 scalar of ``STATUS_*`` bits (0: every ray answered);
     ``lanes=None`` takes :func:`default_lanes` of the devices. With ``rows_out`` the
     first element is ``(hits, rows)``: each winner's row of ``arrays["triangles"]`` as
-    well (int32 [N], -1 for a miss)."""
+    well (int32 [N], -1 for a miss). With ``capacity`` K > 0 (all hits) the first element
+    is ``(rows, count)``: int32 [N, K] and [N] (see :func:`_run_lanes`)."""
+    if origins.shape[0] == 0 and capacity:
+        return ((jnp.zeros((0, capacity), jnp.int32), jnp.zeros(0, jnp.int32)),
+                (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.int32(0))
     if origins.shape[0] == 0:
         empty = Hits(jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.int32),
                      jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.float32))
@@ -682,7 +733,7 @@ def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel:
         lanes = default_lanes(devs)
     return _traverse(arrays, origins, directions, tmax, traversal=traversal, kernel=kernel,
                      any_hit=any_hit, lanes=lanes, stack_size=stack_size, counters=counters,
-                     devices=devs, rows_out=rows_out)
+                     devices=devs, rows_out=rows_out, capacity=capacity)
 
 
 #: Relative widening of every box test. Ize ("Robust BVH ray traversal", JCGT 2013)

@@ -272,13 +272,17 @@ def _status_callback(status, *, stack_size):
 
 
 def _core(structure, origins, directions, tmax, *, kernel, any_hit, counters, lanes,
-          stack_size, rows_out=False):
+          stack_size, rows_out=False, capacity=0):
     """The jittable query on checked rays (float32 [N, 3], [N, 3], [N]): (answers, counters
     int32 [N, 3] or None, status int32 scalar). Brute force reports no status (0). With
     ``rows_out`` (closest hits) the answers are ``(hits, rows)``: each winner's row of the
-    structure's ``triangles`` too, -1 for a miss."""
+    structure's ``triangles`` too, -1 for a miss. With ``capacity`` K > 0 (all hits) they
+    are ``(rows, count)``, int32 [N, K] and [N] (``jrt.engine``'s ``capacity``)."""
     if not accel.kind(structure.kind).engine:  # brute force: no engine, every triangle
-        if any_hit:
+        if capacity:
+            out = brute.all_rows(structure["triangles"], origins, directions, tmax,
+                                 kernel=kernel, capacity=capacity)
+        elif any_hit:
             out = brute.occluded(structure["triangles"], origins, directions, tmax,
                                  kernel=kernel)
         else:
@@ -290,8 +294,8 @@ def _core(structure, origins, directions, tmax, *, kernel, any_hit, counters, la
     hits, count, status = engine.traverse(
         traversal_of(structure), structure.arrays, origins, directions, tmax,
         kernel=kernel, any_hit=any_hit, lanes=lanes, stack_size=stack_size,
-        counters=counters, rows_out=rows_out and not any_hit)
-    return (hits.triangle >= 0 if any_hit else hits), count, status
+        counters=counters, rows_out=rows_out and not any_hit, capacity=capacity)
+    return (hits.triangle >= 0 if any_hit and not capacity else hits), count, status
 
 
 def _item_map(fn, in_batched, args):
@@ -309,7 +313,7 @@ def _item_map(fn, in_batched, args):
 
 
 @functools.cache
-def _flat_query(kernel, any_hit, counters, lanes, stack_size, rows_out=False):
+def _flat_query(kernel, any_hit, counters, lanes, stack_size, rows_out=False, capacity=0):
     """:func:`_core` for ``(structure, origins, directions, tmax)`` with these static
     options, as a ``custom_vmap`` function: under ``jax.vmap`` it runs *once* on the batch
     items' rays laid end to end (see the module's docstring). One function per set of
@@ -324,7 +328,7 @@ def _flat_query(kernel, any_hit, counters, lanes, stack_size, rows_out=False):
     words ORed).
     """
     options = dict(kernel=kernel, any_hit=any_hit, counters=counters, lanes=lanes,
-                   stack_size=stack_size, rows_out=rows_out)
+                   stack_size=stack_size, rows_out=rows_out, capacity=capacity)
     flat = jax.custom_batching.custom_vmap(functools.partial(_core, **options))
 
     @flat.def_vmap
@@ -353,7 +357,7 @@ def _flat_query(kernel, any_hit, counters, lanes, stack_size, rows_out=False):
 
 
 def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, lanes,
-           stack_size, status_out=False, rows_out=False):
+           stack_size, status_out=False, rows_out=False, capacity=0):
     """What :func:`closest_hit` and :func:`occluded` share: checks, size bucket, the
     engine or brute force, the answers of the real rays. Returns (hits, counters or
     None), and with ``status_out`` the engine's status word instead of raising on it
@@ -374,7 +378,7 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
     if size != n:
         origins, directions, tmax = _padded(origins, directions, tmax, size)
     options = dict(kernel=kernel, any_hit=any_hit, counters=counters, lanes=lanes,
-                   stack_size=stack_size, rows_out=rows_out)
+                   stack_size=stack_size, rows_out=rows_out, capacity=capacity)
     if is_brute:
         _check_ray_values(origins, directions, tmax, named=rays)  # padding rays are valid
     if _buckets_enabled():  # (brute force declares no rows: it tests every triangle)
