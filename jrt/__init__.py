@@ -24,7 +24,8 @@ tune_malloc = _xla.tune_malloc
 #: Submodules reached as attributes (``jrt.optics.fresnel``) without an import of their own,
 #: loaded on first use (PEP 562): ``import jrt`` stays as light as it was.
 _SUBMODULES = frozenset({"batch", "host_tree", "interaction", "normals", "optics", "params",
-                         "render", "scene", "sky", "spectral", "wavefront", "whitted"})
+                         "render", "scene", "sky", "spectral", "trimesh", "wavefront",
+                         "whitted"})
 
 
 def __getattr__(name: str):
