@@ -34,13 +34,16 @@ from __future__ import annotations
 import numpy as np
 
 import accel
-from jrt.all_hits import DEFAULT_MAX_HITS, all_hits
+from jrt.all_hits import all_hits
 from jrt.kernels import DEFAULT_KERNEL
 from jrt.trace import closest_hit, occluded
 
 #: trimesh's default direction for ``contains_points`` (``trimesh.ray.ray_util``): not
 #: aligned with any axis, so that rays seldom run along a CAD model's faces.
 CONTAINS_DIRECTION = np.array([0.4395064455, 0.617598629942, 0.652231566745])
+#: ``max_hits`` of the first pass for every hit of each ray: most rays cross a mesh a few
+#: times, and the few with more are traced again with room for their count.
+FIRST_PASS_HITS = 4
 #: ``max_hits`` of ``contains_points``' rays: only their counts are read, which are exact
 #: whatever it is; rays that meet more triangles than its lanes keep are traced again.
 CONTAINS_HITS = 4
@@ -132,7 +135,7 @@ class RayMeshIntersector:
                                      or max_hits < 1):
             raise ValueError(f"max_hits must be a positive integer or None (all hits), "
                              f"got {max_hits!r}")
-        width = DEFAULT_MAX_HITS if max_hits is None else int(max_hits)
+        width = FIRST_PASS_HITS if max_hits is None else int(max_hits)
         o32, d32 = o.astype(np.float32), d.astype(np.float32)
         record = all_hits(self.structure, o32, d32, width, kernel=self.kernel)
         t, triangle = np.asarray(record.t), np.asarray(record.triangle)

@@ -208,7 +208,7 @@ def test_max_hits_keeps_the_nearest(camel19k):
 
 def test_every_hit_also_past_the_default_width():
     """40 stacked squares (80 triangles) crossed by slanted rays: 40 hits each, more than
-    the 16 a first pass keeps, as trimesh's float64 intersector finds them; and with
+    the 4 a first pass keeps, as trimesh's float64 intersector finds them; and with
     ``max_hits`` the nearest of them."""
     vertices, faces = [], []
     for k in range(40):
