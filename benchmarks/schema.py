@@ -35,7 +35,12 @@ with one record per measurement, told apart by ``kind``:
 - ``turntable``: scene, mesh, frames, width, height, samples, max_depth,
   batched_images_per_s, loop_images_per_s, loop_same_capacities_images_per_s, ratio (batched
   over the faster loop), batch_devices, max_abs_difference (batch against the same-capacities
-  loop, radiance), peak_radiance.
+  loop, radiance), peak_radiance;
+- ``trimesh_interface``: mesh, triangles, query (intersects_location, contains_points),
+  engine (jrt, embree, trimesh), items (rays or points), threads (null: all cores), repeats,
+  seconds, per_second, jrt_speedup (jrt's rate over this engine's); on jrt's record also
+  first_call_seconds, found (hits, or points inside), trimesh_items, agree_with_trimesh
+  (rays or points of those whose answer equals trimesh's own), agree_with_embree (of all).
 """
 
 from __future__ import annotations
@@ -71,7 +76,8 @@ def _null(schema: dict) -> dict:
 
 _REF = {name: {"$ref": f"#/$defs/{name}"} for name in (
     "seconds", "rates", "times", "counter", "build", "trace", "peer", "correctness",
-    "scaling", "scaling_row", "cost_model", "cost_point", "heatmap", "image", "turntable")}
+    "scaling", "scaling_row", "cost_model", "cost_point", "heatmap", "image", "turntable",
+    "trimesh_interface")}
 
 DEFS = {
     "seconds": _obj({"median": _NONNEG, "min": _NONNEG, "max": _NONNEG, "spread": _NONNEG}),
@@ -149,10 +155,18 @@ DEFS = {
         "max_depth": _POS_COUNT, "batched_images_per_s": _POS, "loop_images_per_s": _POS,
         "loop_same_capacities_images_per_s": _POS, "ratio": _POS, "batch_devices": _POS_COUNT,
         "max_abs_difference": _NONNEG, "peak_radiance": _NONNEG}),
+    "trimesh_interface": _obj({
+        "kind": {"const": "trimesh_interface"}, "mesh": _STR, "triangles": _POS_COUNT,
+        "query": {"enum": ["intersects_location", "contains_points"]},
+        "engine": {"enum": ["jrt", "embree", "trimesh"]}, "items": _POS_COUNT,
+        "threads": _null(_POS_COUNT), "repeats": _REF["times"], "seconds": _REF["seconds"],
+        "per_second": _POS, "jrt_speedup": _POS},
+        {"first_call_seconds": _POS, "found": _COUNT, "trimesh_items": _POS_COUNT,
+         "agree_with_trimesh": _COUNT, "agree_with_embree": _null(_COUNT)}),
 }
 
 KINDS = ["build", "trace", "peer", "correctness", "scaling", "cost_model", "heatmap",
-         "turntable"]
+         "turntable", "trimesh_interface"]
 
 SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",

@@ -81,6 +81,7 @@ from benchmarks.peers import (
     trimesh_rows,
 )
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
+from benchmarks.trimesh_interface import interface_records
 from jrt.interaction import face_forward, surface_interaction
 from jrt.scenes import GENERATED_LABELS, SCENES, SIZES, parse_label, scene_label, scene_mesh
 
@@ -90,10 +91,10 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 DEFAULTS = {
     "full": {"camera_size": 1024, "rays": 2**18, "builds": 5, "repeats": 5, "brute_rays": 4096,
              "trimesh_rays": 256, "scaling": 4, "scaling_builds": 1, "scaling_repeats": 3,
-             "turntable_frames": 24},
+             "turntable_frames": 24, "interface_rays": 65536},
     "quick": {"camera_size": 64, "rays": 4096, "builds": 2, "repeats": 2, "brute_rays": 4096,
               "trimesh_rays": 32, "scaling": 2, "scaling_builds": 1, "scaling_repeats": 2,
-              "turntable_frames": 8},
+              "turntable_frames": 8, "interface_rays": 512},
 }
 #: The ray sets, in the order they are traced, and their query.
 SETS = {"camera": "closest", "shadow": "occluded", "reflected": "closest",
@@ -194,6 +195,11 @@ def build_parser(add_help: bool = True, prog: str = PROG) -> argparse.ArgumentPa
                              f"(jrt.batch) and as a loop of single renders, images/s of "
                              f"both (benchmarks/turntable.py), 0 to skip "
                              f"({default('turntable_frames')})")
+    parser.add_argument("--interface-rays", type=_non_negative, default=None,
+                        help=f"rays and points of trimesh's ray interface through jrt, "
+                             f"trimesh's Embree intersector and trimesh's own, on the mesh "
+                             f"and an icosphere (benchmarks/trimesh_interface.py), 0 to skip "
+                             f"({default('interface_rays')})")
     parser.add_argument("--seed", type=int, default=0, help="incoherent rays' seed")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                         help="progress bars (default on)")
@@ -818,6 +824,16 @@ def run(args) -> dict:
         log(f"cost model {name:<7} C_TS {rec['c_ts_ns']:.2f} ns, C_IT {rec['c_it_ns']:.2f} ns, "
             f"C_0 {rec['c_ray_ns']:.2f} ns, residual {rec['residual']:.1%}")
 
+    # trimesh's ray interface: jrt's intersector, trimesh's Embree one and its own.
+    if p["interface_rays"]:
+        import trimesh
+
+        for name, tm in ((p["mesh"], trimesh.Trimesh(mesh.vertices, mesh.faces,
+                                                     process=False)), ("sphere", None)):
+            records.extend(interface_records(
+                name, p["interface_rays"], p["interface_rays"], max(p["trimesh_rays"], 1),
+                p["repeats"], args.seed + 3, log, mesh=tm))
+
     # Batched renders: a turntable, batched against a loop of single renders.
     if p["turntable_frames"] and not jrt.data.has_camel("camel-19k"):
         notes.append("no turntable: it renders the glass camel on camel-19k, which was not "
@@ -848,6 +864,7 @@ def run(args) -> dict:
             "scaling_meshes": p["scaling"], "scaling_builds": p["scaling_builds"],
             "scaling_repeats": p["scaling_repeats"], "embree_threads": threads,
             "seed": args.seed, "turntable_frames": p["turntable_frames"],
+            "interface_rays": p["interface_rays"],
             "jax_devices": len(jax.local_devices()),
         },
         "records": records, "notes": notes,

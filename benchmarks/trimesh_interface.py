@@ -80,70 +80,71 @@ def counts(result, n):
     return np.bincount(result[1], minlength=n)
 
 
-def bench_mesh(name, args, log) -> list[dict]:
+def interface_records(name, rays, points, trimesh_items, repeats, seed, log,
+                      mesh=None) -> list[dict]:
+    """The ``"trimesh_interface"`` records (``benchmarks.schema``) of one mesh: per query,
+    one record per engine (items per second, the median of ``repeats`` interleaved calls;
+    trimesh's own on ``trimesh_items`` of them, one call), the jrt record with the
+    agreement counts. ``mesh``: a trimesh.Trimesh (default: :func:`load` of ``name``)."""
     from jrt.raysets import incoherent_set
 
-    mesh = load(name)
-    rows = []
+    mesh = load(name) if mesh is None else mesh
     found = engines(mesh, log)
-    origins, directions = incoherent_set(np.asarray(mesh.vertices, np.float32), args.rays,
-                                         seed=args.seed)
+    origins, directions = incoherent_set(np.asarray(mesh.vertices, np.float32), rays,
+                                         seed=seed)
     origins, directions = origins.astype(np.float64), directions.astype(np.float64)
-    rng = np.random.default_rng(args.seed + 1)
+    rng = np.random.default_rng(seed + 1)
     lo, hi = mesh.bounds
-    points = rng.uniform(lo, hi, (args.points, 3))
-    few = slice(0, min(args.trimesh_rays, args.rays, args.points))
+    cloud = rng.uniform(lo, hi, (points, 3))
     queries = {
         "intersects_location": (
-            lambda e, s=slice(None): e.intersects_location(origins[s], directions[s]),
-            args.rays),
-        "contains_points": (lambda e, s=slice(None): e.contains_points(points[s]),
-                            args.points),
+            lambda e, s=slice(None): e.intersects_location(origins[s], directions[s]), rays),
+        "contains_points": (lambda e, s=slice(None): e.contains_points(cloud[s]), points),
     }
+    records = []
     for query, (call, total) in queries.items():
-        # Warm-up (jrt compiles its programs here) and the answers compared.
+        few = slice(0, min(trimesh_items, total))
+        # The first calls (jrt compiles here), and the answers compared.
         start = time.perf_counter()
         answers = {label: call(e) for label, e in found.items() if label != "trimesh"}
-        log(f"{name} {query}: first calls {time.perf_counter() - start:.1f} s")
+        first = time.perf_counter() - start
         reference = call(found["trimesh"], few)
-        mine_few = call(found["jrt"], few)
+        mine = call(found["jrt"], few)
         if query == "intersects_location":
-            n_few = few.stop
-            agree = float(np.mean(counts(mine_few, n_few) == counts(reference, n_few)))
-            embree_agree = (float(np.mean(counts(answers["embree"], total)
-                                          == counts(answers["jrt"], total)))
-                            if "embree" in answers else None)
-            hits = int(len(answers["jrt"][1]))
+            agree = int(np.sum(counts(mine, few.stop) == counts(reference, few.stop)))
+            embree = (int(np.sum(counts(answers["embree"], total)
+                                 == counts(answers["jrt"], total)))
+                      if "embree" in answers else None)
+            found_items = int(len(answers["jrt"][1]))
         else:
-            agree = float(np.mean(mine_few == reference))
-            embree_agree = (float(np.mean(answers["embree"] == answers["jrt"]))
-                            if "embree" in answers else None)
-            hits = int(answers["jrt"].sum())
+            agree = int(np.sum(mine == reference))
+            embree = (int(np.sum(answers["embree"] == answers["jrt"]))
+                      if "embree" in answers else None)
+            found_items = int(answers["jrt"].sum())
         fns = {label: (lambda e=e, call=call: call(e)) for label, e in found.items()
                if label != "trimesh"}
-        times = interleaved_times(fns, args.repeats)
+        times = interleaved_times(fns, repeats)
         slow = found["trimesh"]
-        times["trimesh"] = time_calls(lambda call=call, slow=slow: call(slow, few), 1)
+        times["trimesh"] = time_calls(lambda call=call, slow=slow, few=few: call(slow, few), 1)
+        rate = {label: (few.stop if label == "trimesh" else total)
+                / summary(seconds)["median"] for label, seconds in times.items()}
         for label, seconds in times.items():
-            n = few.stop if label == "trimesh" else total
-            rate = n / summary(seconds)["median"]
-            rows.append({"mesh": name, "triangles": int(len(mesh.faces)), "query": query,
-                         "engine": label, "items": n, "repeats": seconds,
-                         "per_second": rate})
-        jrt_rate = next(r["per_second"] for r in rows
-                        if r["mesh"] == name and r["query"] == query and r["engine"] == "jrt")
-        for r in rows:
-            if r["mesh"] == name and r["query"] == query:
-                r["jrt_speedup"] = jrt_rate / r["per_second"]
-        rows.append({"mesh": name, "query": query, "engine": "agreement",
-                     "with_trimesh": agree, "trimesh_items": few.stop,
-                     "embree_with_jrt": embree_agree, "jrt_hits_or_inside": hits})
-        for r in rows[-len(times) - 1:-1]:
-            log(f"{name:7} {query:20} {r['engine']:8} {r['per_second']:12,.0f} /s "
-                f"(jrt {r['jrt_speedup']:.2f}x)")
-        log(f"{name:7} {query:20} agreement with trimesh {agree:.4f} on {few.stop}, "
-            f"Embree with jrt {embree_agree}")
-    return rows
+            record = {"kind": "trimesh_interface", "mesh": name,
+                      "triangles": int(len(mesh.faces)), "query": query, "engine": label,
+                      "items": few.stop if label == "trimesh" else total, "threads": None
+                      if label == "jrt" else 1, "repeats": seconds,
+                      "seconds": summary(seconds), "per_second": rate[label],
+                      "jrt_speedup": rate["jrt"] / rate[label]}
+            if label == "jrt":
+                record.update(first_call_seconds=first, found=found_items,
+                              trimesh_items=few.stop, agree_with_trimesh=agree,
+                              agree_with_embree=embree)
+            records.append(record)
+            log(f"{name:7} {query:20} {label:8} {rate[label]:12,.0f} /s "
+                f"(jrt {record['jrt_speedup']:.2f}x)")
+        log(f"{name:7} {query:20} jrt agrees with trimesh on {agree} of {few.stop}, "
+            f"with Embree on {embree} of {total}")
+    return records
 
 
 def main(argv=None) -> dict:
@@ -168,12 +169,12 @@ def main(argv=None) -> dict:
     import jrt
 
     jrt.tune_malloc()
-    rows = []
+    records = []
     for name in meshes:
-        rows += bench_mesh(name, args, print)
-    record = {"kind": "trimesh_interface", "command": command_line(PROG, argv),
-              "date": time.strftime("%Y-%m-%d"), "host": platform.processor()
-              or platform.machine(), "rows": rows}
+        records += interface_records(name, args.rays, args.points, args.trimesh_rays,
+                                     args.repeats, args.seed, print)
+    record = {"command": command_line(PROG, argv), "date": time.strftime("%Y-%m-%d"),
+              "host": platform.processor() or platform.machine(), "records": records}
     if args.json:
         write_record(record, args.json)
     return record

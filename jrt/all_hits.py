@@ -205,7 +205,12 @@ def _check_max_hits(max_hits):
 
 
 def _collect(structure, origins, directions, tmax, *, kernel, lanes, stack_size, capacity):
-    """(rows [N, K], collected [N]) of the query with this capacity (``jrt.trace``)."""
+    """(rows [N, K], collected [N]) of the query with this capacity (``jrt.trace``). The
+    rows are integers: nothing to differentiate, so the traversal sees its inputs'
+    values only (a derivative around it never reaches the engine's loop)."""
+    if trace._is_traced(origins, directions, tmax, *jax.tree.leaves(structure)):
+        origins, directions, tmax = (lax.stop_gradient(a) for a in (origins, directions, tmax))
+        structure = jax.tree.map(lax.stop_gradient, structure)
     (rows, collected), _ = trace._query(
         structure, origins, directions, tmax, kernel=kernel, any_hit=False, counters=False,
         lanes=lanes, stack_size=stack_size, capacity=capacity)

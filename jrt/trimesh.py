@@ -185,7 +185,9 @@ class RayMeshIntersector:
         ray forward and one backward; an odd count of crossings is inside. Where the two
         disagree (an open mesh, a point on the surface) and neither ray leaves into free
         space, the point is tried again along other directions; a point still undecided
-        takes the forward ray's answer. A point outside the bounding box is outside."""
+        takes the forward ray's answer. A point outside the bounding box is outside. A
+        point on the surface (which trimesh leaves undefined) does not cross its own face
+        (a hit needs ``t > 0``): on a convex mesh it is outside."""
         points = np.asarray(points, dtype=np.float64)
         if points.size == 0:
             return np.zeros(0, bool)

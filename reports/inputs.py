@@ -383,7 +383,8 @@ def bench_command(data: dict, path: Path) -> str:
     camera = p.get("camera") if isinstance(p.get("camera"), dict) else {}
     for flag, value in (("--camera-size", camera.get("width")), ("--rays", p.get("rays")),
                         ("--builds", p.get("builds")), ("--repeats", p.get("repeats")),
-                        ("--scaling", p.get("scaling_meshes"))):
+                        ("--scaling", p.get("scaling_meshes")),
+                        ("--interface-rays", p.get("interface_rays"))):
         if value is not None:
             parts += [flag, str(value)]
     if p.get("seed"):

@@ -77,6 +77,7 @@ from reports.sections import (
     section_scaling,
     section_stability,
     section_structures,
+    section_trimesh_interface,
     section_turntable,
     section_work_precision,
 )
@@ -169,6 +170,7 @@ def generate(paths, out_dir, images=(), title: str | None = None) -> dict:
         section_scaling(doc, b, out, prefix)
         section_cost_model(doc, b, out, prefix)
         section_turntable(doc, b)
+        section_trimesh_interface(doc, b)
     section_scenes(doc, inputs, out)
     section_work_precision(doc, inputs, out)
     section_inverse(doc, inputs, out)

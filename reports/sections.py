@@ -343,6 +343,37 @@ def section_turntable(doc: Doc, b: Bench) -> bool:
     return True
 
 
+def section_trimesh_interface(doc: Doc, b: Bench) -> bool:
+    """trimesh's ray interface through jrt, Embree and trimesh (False where none ran)."""
+    recs = b.of("trimesh_interface")
+    if not recs:
+        return False
+    doc.heading(3, "trimesh's ray interface" + (f": {b.label}" if b.label else ""))
+    doc.para(_section_mark(b)
+             + "What a trimesh user calls: `intersects_location` (every hit of each ray, "
+             "trimesh's default) on rays through the mesh's bounding sphere and "
+             "`contains_points` on points drawn in its bounding box, through "
+             "`jrt.trimesh.RayMeshIntersector` (BVH, watertight kernel, all cores), "
+             "trimesh's Embree intersector (`ray_pyembree`, one thread, as trimesh calls it) "
+             "and trimesh's own (`ray_triangle`, float64 NumPy, on a subset: it is slow). "
+             "Items are rays or points per second; *x jrt* is jrt's rate over the engine's. "
+             "Agreement: the rays whose hit count (or the points whose answer) equals "
+             f"trimesh's own, and Embree's, answer. Data: `{b.command}`.")
+    rows = []
+    for r in recs:
+        agree = ""
+        if r.get("engine") == "jrt":
+            agree = (f"{num(r.get('agree_with_trimesh'))} of {num(r.get('trimesh_items'))}"
+                     f" with trimesh; {num(r.get('agree_with_embree'))} of "
+                     f"{num(r.get('items'))} with Embree")
+        rows.append([r.get("mesh"), num(r.get("triangles")), f"`{r.get('query')}`",
+                     r.get("engine"), num(r.get("items")), num(r.get("per_second")),
+                     num(r.get("jrt_speedup")), agree])
+    doc.table(["mesh", "triangles", "call", "engine", "items", "per second", "x jrt",
+               "agreement"], rows)
+    return True
+
+
 # ============================================================================================
 # Work–precision
 # ============================================================================================

@@ -139,15 +139,16 @@ def output_folder(args, parser: argparse.ArgumentParser) -> Path:
 
 
 STEPS = ("bench", "scenes", "stability", "work_precision", "inverse", "renders")
-#: The scenes step's suite options by study size: the suite without its scaling, turntable
-#: and trimesh parts, the generated scenes small unless --full.
+#: The scenes step's suite options by study size: the suite without its scaling, turntable,
+#: trimesh and trimesh-interface parts, the generated scenes small unless --full.
 SCENE_SIZES = {
     "quick": ["--quick"],
     "default": ["--scene-size", "small", "--camera-size", "256", "--rays", "65536",
                 "--builds", "3", "--repeats", "3"],
     "full": ["--scene-size", "full", "--camera-size", "512", "--rays", "131072"],
 }
-SCENE_PARTS_OFF = ["--scaling", "0", "--turntable-frames", "0", "--trimesh-rays", "0"]
+SCENE_PARTS_OFF = ["--scaling", "0", "--turntable-frames", "0", "--trimesh-rays", "0",
+                   "--interface-rays", "0"]
 
 
 def scene_names(text: str) -> list[str]:

@@ -206,6 +206,13 @@ def test_the_derivative_of_each_hit_is_the_planes():
     _, sideways = jax.jvp(ts, (origins,), (jnp.asarray([[1.0, 0, 0], [0, 1.0, 0]]),))
     np.testing.assert_allclose(np.asarray(sideways), 0, atol=1e-6)
 
+    def total(o):  # reverse mode: the sum of every hit's t
+        t = ts(o)
+        return jnp.sum(jnp.where(jnp.isfinite(t), t, 0.0))
+
+    np.testing.assert_allclose(np.asarray(jax.grad(total)(origins)), [[0, 0, -2]] * 2,
+                               atol=1e-6)
+
 
 @pytest.mark.parametrize("bad", [0, -3, 2.5, True, None])
 def test_max_hits_must_be_a_positive_integer(bad):

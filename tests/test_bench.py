@@ -120,6 +120,28 @@ def test_turntable_batched_against_the_loop(results):
     assert rec["max_abs_difference"] <= 1e-5 * rec["peak_radiance"]
 
 
+def test_trimesh_interface_through_jrt_embree_and_trimesh(results):
+    """trimesh's ray interface on the run's mesh and the icosphere: jrt's intersector
+    answers every ray and point as trimesh's own float64 intersector does on its subset
+    and as Embree's on all of them, and each speedup is the rates' quotient."""
+    recs = _records(results, "trimesh_interface")
+    meshes = {r["mesh"] for r in recs}
+    assert meshes == {results["parameters"]["mesh"], "sphere"}
+    for mesh in meshes:
+        for query in ("intersects_location", "contains_points"):
+            mine = _records(results, "trimesh_interface", mesh=mesh, query=query)
+            by = {r["engine"]: r for r in mine}
+            assert set(by) == {"jrt", "embree", "trimesh"}
+            jrt_rec = by["jrt"]
+            assert jrt_rec["items"] == suite.DEFAULTS["quick"]["interface_rays"]
+            assert jrt_rec["agree_with_trimesh"] == jrt_rec["trimesh_items"] > 0
+            assert jrt_rec["agree_with_embree"] == jrt_rec["items"]
+            assert jrt_rec["found"] > 0
+            for r in mine:
+                assert r["jrt_speedup"] == pytest.approx(jrt_rec["per_second"]
+                                                         / r["per_second"])
+
+
 def test_rates_and_ratios_agree(results):
     embree = {r["set"]: r for r in _records(results, "peer", peer="embree")}
     for r in _records(results, "trace") + _records(results, "peer", status="ok"):

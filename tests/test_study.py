@@ -79,6 +79,7 @@ def test_quick_study_end_to_end(quick_study, quick_study_structures):
     assert json.loads((out / "work_precision.json").read_text())["records"]
     readme = (out / "README.md").read_text()
     for section in ("## The structures side by side", "### Per-pixel cost",
+                    "### trimesh's ray interface",
                     "## The structures across scenes", "### The literature's claims",
                     "## Error against run time", "## Gradients: worked inverse problems",
                     "## Numerical stability", "## Renders"):

@@ -134,6 +134,15 @@ def test_contains_on_a_cube():
     np.testing.assert_array_equal(got, np.all(np.abs(points) < 0.5, axis=1))
     np.testing.assert_array_equal(got, ray_triangle.RayMeshIntersector(mesh).contains_points(
         points))
+    # On the surface (trimesh leaves it undefined): a hit needs t > 0, so a point's own
+    # face is not crossed, and on a convex mesh one of its rays leaves into free space:
+    # outside, on faces, edges and corners alike.
+    surface = rng.uniform(-0.5, 0.5, (60, 3))
+    surface[np.arange(60), np.arange(60) % 3] = np.where(np.arange(60) % 2, 0.5, -0.5)
+    corners = np.array([[x, y, z] for x in (-.5, .5) for y in (-.5, .5) for z in (-.5, .5)])
+    edges = np.array([[0.5, 0.5, 0.1], [-0.5, 0.2, 0.5], [0.3, -0.5, -0.5]])
+    on = RayMeshIntersector(mesh).contains_points(np.concatenate([surface, corners, edges]))
+    assert not on.any()
 
 
 def test_trimeshs_own_functions_cast_through_jrt(camel19k):
@@ -225,3 +234,35 @@ def test_every_hit_also_past_the_default_width():
         origins, directions), atol=1e-5)
     five = ours.intersects_location(origins, directions, max_hits=5)
     np.testing.assert_array_equal(five[2], got[2].reshape(3, 40)[:, :5].ravel())
+
+
+def test_the_readme_example_runs():
+    """The README's all-hits and trimesh example, as printed, after its first example in a
+    fresh interpreter: the first of every hit is the closest hit, and ``tm.contains``
+    answers as trimesh's Embree intersector does."""
+    import re
+    import subprocess
+    import sys
+    import textwrap
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    blocks = re.findall(r"```python\n(.*?)```", (root / "README.md").read_text(), flags=re.S)
+    example = next(b for b in blocks if "jrt.all_hits(" in b)
+    check = textwrap.dedent("""
+        import numpy as _np
+        _np.testing.assert_array_equal(_np.asarray(every.triangle[:, 0]),
+                                       _np.asarray(hits.triangle))
+        _np.testing.assert_array_equal(_np.asarray(every.t[:, 0]), _np.asarray(hits.t))
+        if __import__("importlib").util.find_spec("embreex"):
+            from trimesh.ray import ray_pyembree
+            _want = ray_pyembree.RayMeshIntersector(tm).contains_points(targets)
+            _np.testing.assert_array_equal(inside, _want)
+        print("INSIDE", float(inside.mean()))
+    """)
+    code = blocks[0] + example + check
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=root, env={**__import__("os").environ, "PYTHONPATH": str(root)},
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert 0 < float(out.stdout.split("INSIDE")[1]) < 1, out.stdout
