@@ -321,6 +321,10 @@ def build(
     # The split search bins float32 copies (half the memory traffic); the sides are
     # decided in float64.
     fixed_min32, fixed_max32 = fixed_min.astype(np.float32), fixed_max.astype(np.float32)
+    # The axes' columns apart, contiguous: most nodes search them alone, and a row gather
+    # (np.take) of a contiguous [T, 3] is 2-3x faster than a fancy index with a slice.
+    axis_min32, axis_max32 = (np.ascontiguousarray(a[:, :3]) for a in (fixed_min32,
+                                                                        fixed_max32))
 
     # The nodes (their regions' bounding boxes), their splits (normal, offset) and leaves.
     levels = LevelBuild(triangles.bounds, t_count, max_leaf_size, depth_limit,
@@ -364,13 +368,15 @@ def build(
                 t_min, t_max = _project(
                     tri_t[:, :, g_tri],
                     np.repeat(tri_normals[sampled].transpose(2, 1, 0), g_counts, axis=2))
-                pmin = np.concatenate([fixed_min32[g_tri], t_min], axis=1, dtype=np.float32)
-                pmax = np.concatenate([fixed_max32[g_tri], t_max], axis=1, dtype=np.float32)
+                pmin = np.concatenate([np.take(fixed_min32, g_tri, axis=0), t_min], axis=1,
+                                      dtype=np.float32)
+                pmax = np.concatenate([np.take(fixed_max32, g_tri, axis=0), t_max], axis=1,
+                                      dtype=np.float32)
                 kind_of = np.array([0, 0, 0, 1, 1, 1, 1] + [2] * triangle_planes)
             else:
                 cand = np.broadcast_to(fixed[:3], (nodes.size, 3, 3))
                 exact = np.full((nodes.size, 3), np.nan)
-                pmin, pmax = fixed_min32[g_tri, :3], fixed_max32[g_tri, :3]
+                pmin, pmax = (np.take(a, g_tri, axis=0) for a in (axis_min32, axis_max32))
                 kind_of = np.zeros(3, np.int64)
             g_counts, g_ext = counts[nodes], extent[g_tri]
             g_lo, g_hi = levels.lo[nodes], levels.hi[nodes]
@@ -407,7 +413,9 @@ def build(
         sel = np.flatnonzero(splitting[rseg])
         r = rank[rseg[sel]]
         # (Along the fixed orientations the extents are precomputed, the others projected.)
-        p_min, p_max = fixed_min[rtri[sel], which[r]], fixed_max[rtri[sel], which[r]]
+        # (By flat index into the [T, 7] extents: one index array, one gather each.)
+        flat = rtri[sel] * fixed.shape[0] + np.maximum(which[r], 0)
+        p_min, p_max = np.take(fixed_min, flat), np.take(fixed_max, flat)
         own = np.flatnonzero(which[r] < 0)
         if own.size:
             t_min, t_max = _project(tri_t[:, :, rtri[sel[own]]], n[r[own]].T[:, None, :])
