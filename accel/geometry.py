@@ -103,8 +103,12 @@ def local_frame(triangles: np.ndarray):
     corners = local_corners(triangles, frame)
     if not corners.shape[0]:
         return frame, corners, np.zeros((2, 3), np.float32)
-    return frame, corners, np.stack([float32_down(corners.min(axis=(0, 1))),
-                                     float32_up(corners.max(axis=(0, 1)))]).astype(np.float32)
+    # One column at a time (a strided 1-D reduction): NumPy reduces [T, 3, 3] over its
+    # first two axes 20x slower (6 ms a bound on the camel).
+    rows = corners.reshape(-1, 3)
+    lo = np.array([rows[:, i].min() for i in range(3)])
+    hi = np.array([rows[:, i].max() for i in range(3)])
+    return frame, corners, np.stack([float32_down(lo), float32_up(hi)]).astype(np.float32)
 
 
 def float32_down(x: np.ndarray) -> np.ndarray:
@@ -132,7 +136,13 @@ CELL_MARGIN = 2.0**-16
 def triangle_extents(corners: np.ndarray) -> np.ndarray:
     """float64 [T]: the largest side of each triangle's bounding box (corners [T, 3, 3])."""
     c = np.asarray(corners, np.float64)
-    return (c.max(axis=1) - c.min(axis=1)).max(axis=1) if c.shape[0] else np.zeros(0)
+    if not c.shape[0]:
+        return np.zeros(0)
+    # Elementwise over the corners and axes (a reduction along a short middle or last
+    # axis is a strided loop per row: 20 ms against a few on the camel).
+    v0, v1, v2 = c[:, 0], c[:, 1], c[:, 2]
+    side = np.maximum(np.maximum(v0, v1), v2) - np.minimum(np.minimum(v0, v1), v2)
+    return np.maximum(np.maximum(side[:, 0], side[:, 1]), side[:, 2])
 
 
 def reference_margin(size, extent):

@@ -400,7 +400,9 @@ def build(
     rtri = np.arange(t_count, dtype=np.int64)
     pool = _Pool(8 * t_count)  # (rows never written cost no memory)
     rpoly = np.full(t_count, -1, np.int64)
-    box = np.concatenate([tri64.min(axis=1).T, tri64.max(axis=1).T, extent[None]])
+    v0, v1, v2 = tri64[:, 0], tri64[:, 1], tri64[:, 2]  # (elementwise: see triangle_extents)
+    box = np.concatenate([np.minimum(np.minimum(v0, v1), v2).T,
+                          np.maximum(np.maximum(v0, v1), v2).T, extent[None]])
     while levels.active:
         k = levels.size
         counts = np.bincount(rseg, minlength=k)
