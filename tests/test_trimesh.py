@@ -232,8 +232,9 @@ def test_every_hit_also_past_the_default_width():
     assert np.bincount(got[1]).tolist() == [40, 40, 40]
     assert_same_hits(got, ray_triangle.RayMeshIntersector(mesh).intersects_location(
         origins, directions), atol=1e-5)
-    five = ours.intersects_location(origins, directions, max_hits=5)
-    np.testing.assert_array_equal(five[2], got[2].reshape(3, 40)[:, :5].ravel())
+    # (max_hits 4: the first pass's own programs, no new compile)
+    four = ours.intersects_location(origins, directions, max_hits=4)
+    np.testing.assert_array_equal(four[2], got[2].reshape(3, 40)[:, :4].ravel())
 
 
 def test_the_readme_example_runs():
