@@ -161,8 +161,8 @@ DEFS = {
         "engine": {"enum": ["jrt", "embree", "trimesh"]}, "items": _POS_COUNT,
         "threads": _null(_POS_COUNT), "repeats": _REF["times"], "seconds": _REF["seconds"],
         "per_second": _POS, "jrt_speedup": _POS},
-        {"first_call_seconds": _POS, "found": _COUNT, "trimesh_items": _POS_COUNT,
-         "agree_with_trimesh": _COUNT, "agree_with_embree": _null(_COUNT)}),
+        {"first_call_seconds": _POS, "found": _COUNT, "trimesh_items": _null(_POS_COUNT),
+         "agree_with_trimesh": _null(_COUNT), "agree_with_embree": _null(_COUNT)}),
 }
 
 KINDS = ["build", "trace", "peer", "correctness", "scaling", "cost_model", "heatmap",

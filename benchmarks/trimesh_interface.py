@@ -58,9 +58,8 @@ def load(name: str):
 
 
 def engines(mesh, log):
-    """label -> intersector: jrt's, Embree's (if embreex imports), trimesh's own."""
-    from trimesh.ray import ray_triangle
-
+    """label -> intersector: jrt's, Embree's (if embreex is installed), trimesh's own (if
+    rtree is: its intersector needs it)."""
     from jrt.trimesh import RayMeshIntersector
 
     out = {"jrt": RayMeshIntersector(mesh)}
@@ -70,8 +69,13 @@ def engines(mesh, log):
         out["embree"] = ray_pyembree.RayMeshIntersector(mesh)
     else:
         log("embree: embreex is not installed (pip install embreex); left out")
-    out["trimesh"] = ray_triangle.RayMeshIntersector(mesh)
-    mesh.triangles_tree  # noqa: B018  (trimesh's rtree, built outside the timing)
+    if importlib.util.find_spec("rtree") is not None:
+        from trimesh.ray import ray_triangle
+
+        out["trimesh"] = ray_triangle.RayMeshIntersector(mesh)
+        mesh.triangles_tree  # noqa: B018  (trimesh's rtree, built outside the timing)
+    else:
+        log("trimesh: its ray intersector needs rtree (pip install rtree); left out")
     return out
 
 
@@ -108,24 +112,26 @@ def interface_records(name, rays, points, trimesh_items, repeats, seed, log,
         start = time.perf_counter()
         answers = {label: call(e) for label, e in found.items() if label != "trimesh"}
         first = time.perf_counter() - start
-        reference = call(found["trimesh"], few)
+        reference = call(found["trimesh"], few) if "trimesh" in found else None
         mine = call(found["jrt"], few)
         if query == "intersects_location":
-            agree = int(np.sum(counts(mine, few.stop) == counts(reference, few.stop)))
-            embree = (int(np.sum(counts(answers["embree"], total)
-                                 == counts(answers["jrt"], total)))
-                      if "embree" in answers else None)
+            def same(a, b, n):  # rays whose hit counts agree
+                return int(np.sum(counts(a, n) == counts(b, n)))
             found_items = int(len(answers["jrt"][1]))
         else:
-            agree = int(np.sum(mine == reference))
-            embree = (int(np.sum(answers["embree"] == answers["jrt"]))
-                      if "embree" in answers else None)
+            def same(a, b, n):  # points whose answers agree
+                return int(np.sum(a == b))
             found_items = int(answers["jrt"].sum())
+        agree = None if reference is None else same(mine, reference, few.stop)
+        embree = (same(answers["embree"], answers["jrt"], total) if "embree" in answers
+                  else None)
         fns = {label: (lambda e=e, call=call: call(e)) for label, e in found.items()
                if label != "trimesh"}
         times = interleaved_times(fns, repeats)
-        slow = found["trimesh"]
-        times["trimesh"] = time_calls(lambda call=call, slow=slow, few=few: call(slow, few), 1)
+        if "trimesh" in found:
+            slow = found["trimesh"]
+            times["trimesh"] = time_calls(lambda call=call, slow=slow, few=few: call(slow, few),
+                                          1)
         rate = {label: (few.stop if label == "trimesh" else total)
                 / summary(seconds)["median"] for label, seconds in times.items()}
         for label, seconds in times.items():
@@ -137,13 +143,15 @@ def interface_records(name, rays, points, trimesh_items, repeats, seed, log,
                       "jrt_speedup": rate["jrt"] / rate[label]}
             if label == "jrt":
                 record.update(first_call_seconds=first, found=found_items,
-                              trimesh_items=few.stop, agree_with_trimesh=agree,
+                              trimesh_items=few.stop if agree is not None else None,
+                              agree_with_trimesh=agree,
                               agree_with_embree=embree)
             records.append(record)
             log(f"{name:7} {query:20} {label:8} {rate[label]:12,.0f} /s "
                 f"(jrt {record['jrt_speedup']:.2f}x)")
-        log(f"{name:7} {query:20} jrt agrees with trimesh on {agree} of {few.stop}, "
-            f"with Embree on {embree} of {total}")
+        for peer, n, of in (("trimesh", agree, few.stop), ("Embree", embree, total)):
+            if n is not None:
+                log(f"{name:7} {query:20} jrt agrees with {peer} on {n:,} of {of:,}")
     return records
 
 

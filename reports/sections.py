@@ -363,9 +363,11 @@ def section_trimesh_interface(doc: Doc, b: Bench) -> bool:
     for r in recs:
         agree = ""
         if r.get("engine") == "jrt":
-            agree = (f"{num(r.get('agree_with_trimesh'))} of {num(r.get('trimesh_items'))}"
-                     f" with trimesh; {num(r.get('agree_with_embree'))} of "
-                     f"{num(r.get('items'))} with Embree")
+            parts = [f"{num(r.get(key))} of {num(r.get(of))} with {peer}"
+                     for key, of, peer in (("agree_with_trimesh", "trimesh_items", "trimesh"),
+                                           ("agree_with_embree", "items", "Embree"))
+                     if r.get(key) is not None]
+            agree = "; ".join(parts) or "not compared (neither peer installed)"
         rows.append([r.get("mesh"), num(r.get("triangles")), f"`{r.get('query')}`",
                      r.get("engine"), num(r.get("items")), num(r.get("per_second")),
                      num(r.get("jrt_speedup")), agree])
