@@ -71,6 +71,19 @@ def test_the_registry_lists_the_new_kind_everywhere():
     assert int(hits.triangle[0]) == 0 and float(hits.t[0]) == 1.0
 
 
+def test_the_new_kind_answers_all_hits_as_brute_force(camel19k):
+    """``jrt.all_hits`` needs nothing of a structure beyond its step: the new kind's every
+    hit, bit for bit, is brute force's (incoherent rays of the 19k camel)."""
+    from jrt.raysets import incoherent_set
+
+    origins, directions = incoherent_set(camel19k.vertices, 500, seed=1)
+    got, want = (jrt.all_hits(accel.build(name, camel19k.vertices, camel19k.faces),
+                              origins, directions, 4) for name in (NAME, "brute"))
+    assert int(np.sum(want.count)) > 0
+    for field, a, b in zip(got._fields, got, want, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=field)
+
+
 def test_an_unknown_name_lists_the_new_kind():
     with pytest.raises(ValueError, match=r"unknown acceleration structure 'bvh3' .*"
                        r"allowed: brute, bvh, kdtree, octree, bsp, grid, bvh2$"):
