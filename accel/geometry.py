@@ -133,15 +133,21 @@ def float32_up(x: np.ndarray) -> np.ndarray:
 CELL_MARGIN = 2.0**-16
 
 
+def triangle_boxes(corners: np.ndarray):
+    """(lo, hi) [T, 3]: each triangle's bounding box (corners [T, 3, 3]), elementwise over
+    its three corners (a reduction along the short middle axis is a strided loop per row:
+    20 ms against a few on the camel)."""
+    v0, v1, v2 = corners[:, 0], corners[:, 1], corners[:, 2]
+    return np.minimum(np.minimum(v0, v1), v2), np.maximum(np.maximum(v0, v1), v2)
+
+
 def triangle_extents(corners: np.ndarray) -> np.ndarray:
     """float64 [T]: the largest side of each triangle's bounding box (corners [T, 3, 3])."""
     c = np.asarray(corners, np.float64)
     if not c.shape[0]:
         return np.zeros(0)
-    # Elementwise over the corners and axes (a reduction along a short middle or last
-    # axis is a strided loop per row: 20 ms against a few on the camel).
-    v0, v1, v2 = c[:, 0], c[:, 1], c[:, 2]
-    side = np.maximum(np.maximum(v0, v1), v2) - np.minimum(np.minimum(v0, v1), v2)
+    lo, hi = triangle_boxes(c)
+    side = hi - lo
     return np.maximum(np.maximum(side[:, 0], side[:, 1]), side[:, 2])
 
 

@@ -86,7 +86,7 @@ import time
 
 import numpy as np
 
-from accel.geometry import reference_margin
+from accel.geometry import reference_margin, triangle_boxes
 from accel.plane_tree import (
     DEFAULT_EMPTY_BONUS,
     DEFAULT_INTERSECTION_COST,
@@ -400,9 +400,8 @@ def build(
     rtri = np.arange(t_count, dtype=np.int64)
     pool = _Pool(8 * t_count)  # (rows never written cost no memory)
     rpoly = np.full(t_count, -1, np.int64)
-    v0, v1, v2 = tri64[:, 0], tri64[:, 1], tri64[:, 2]  # (elementwise: see triangle_extents)
-    box = np.concatenate([np.minimum(np.minimum(v0, v1), v2).T,
-                          np.maximum(np.maximum(v0, v1), v2).T, extent[None]])
+    tri_lo, tri_hi = triangle_boxes(tri64)
+    box = np.concatenate([tri_lo.T, tri_hi.T, extent[None]])
     while levels.active:
         k = levels.size
         counts = np.bincount(rseg, minlength=k)

@@ -51,7 +51,7 @@ from jaxtyping import Array, Bool, Float, Int
 from accel.structure import Structure
 from jrt import engine, trace
 from jrt.hit_derivatives import hit_tangents
-from jrt.hits import gather_triangles, tie_window
+from jrt.hits import tie_window, winner_hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
 
 #: ``max_hits`` when not given: a ray through a closed mesh such as the camel crosses it
@@ -88,30 +88,27 @@ def capacity_for(max_hits: int) -> int:
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _evaluate(kernel, triangles, rows, origins, directions):
-    """t, u, v [N, K] of each ray against its ``rows`` [N, K] of ``triangles`` (-1: inf,
-    0, 0). One column at a time over every ray (``lax.map``): a ray's row is evaluated by
-    the same code, at the same place of the vectorised loop, whichever column holds it and
-    whichever structure found it."""
+def _evaluate(kernel, triangles, triangle_ids, rows, origins, directions):
+    """t, face, u, v [N, K] of each ray against its ``rows`` [N, K] of ``triangles`` (-1:
+    inf, -1, 0, 0): each column through :func:`jrt.hits.winner_hits`, the evaluation every
+    closest hit gets, one column at a time over every ray (``lax.map``), so a ray's row is
+    evaluated by the same code whichever column holds it and whichever structure found
+    it."""
     fn = get_kernel(kernel)
+    rays = jnp.concatenate([origins, directions], axis=1)
 
     def column(r):
-        tri = gather_triangles(triangles, jnp.maximum(r, 0))
-        t, u, v = fn(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
-        hit = (r >= 0) & (t < jnp.inf)
-        return (jnp.where(hit, t, jnp.inf), jnp.where(hit, u, 0.0), jnp.where(hit, v, 0.0))
+        hits = winner_hits(fn, rays, triangles, triangle_ids, r)
+        return hits.t, hits.triangle, hits.u, hits.v
 
-    if triangles.shape[0] == 0:
-        inf = jnp.full(rows.shape, jnp.inf, jnp.float32)
-        return inf, jnp.zeros_like(inf), jnp.zeros_like(inf)
     return tuple(a.T for a in lax.map(column, rows.T))
 
 
 @_evaluate.defjvp
 def _evaluate_jvp(kernel, primals, tangents):
     """The closed-form tangents of each hit (``jrt.hit_derivatives``), as closest hits."""
-    triangles, rows, origins, directions = primals
-    triangles_dot, _, origins_dot, directions_dot = tangents
+    triangles, _, rows, origins, directions = primals
+    triangles_dot, _, _, origins_dot, directions_dot = tangents
     out = _evaluate(kernel, *primals)
     shape = rows.shape + (3,)
     t_dot, u_dot, v_dot = hit_tangents(
@@ -120,7 +117,8 @@ def _evaluate_jvp(kernel, primals, tangents):
         jnp.broadcast_to(origins_dot[:, None], shape),
         jnp.broadcast_to(directions_dot[:, None], shape))
     hit = out[0] < jnp.inf
-    return out, tuple(jnp.where(hit, x, 0.0) for x in (t_dot, u_dot, v_dot))
+    t_dot, u_dot, v_dot = (jnp.where(hit, x, 0.0) for x in (t_dot, u_dot, v_dot))
+    return out, (t_dot, np.zeros(rows.shape, jax.dtypes.float0), u_dot, v_dot)
 
 
 def hits_of_rows(kernel: str, triangles, triangle_ids, origins, directions, rows, collected,
@@ -134,11 +132,10 @@ def hits_of_rows(kernel: str, triangles, triangle_ids, origins, directions, rows
     (three sorts of [65536, 36] took 0.8 s). The order is by rank instead, each entry's
     count of entries before it ([N, K, K] comparisons, vectorised), and the tie groups are
     one scan over the K columns; gathers and scatters place the entries."""
-    t, u, v = _evaluate(kernel, triangles, rows, origins, directions)
+    t, face, u, v = _evaluate(kernel, triangles, triangle_ids, rows, origins, directions)
     n, k = t.shape
     valid = t < jnp.inf
     column = lax.broadcasted_iota(jnp.int32, (n, k), 1)
-    face = jnp.where(valid, triangle_ids[jnp.maximum(rows, 0)], -1)
     # (t, face) keys, distinct in a row (its rows are): free slots after every hit.
     key = jnp.where(valid, face, jnp.iinfo(jnp.int32).max - k + column)
     t_i, t_j = t[:, :, None], t[:, None, :]

@@ -393,18 +393,19 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
             "trav_done": jnp.zeros(lanes, bool),
             "cursor": jnp.zeros(lanes, jnp.int32),
             "end": jnp.zeros(lanes, jnp.int32),
-            # best_t is meaningful only once best_id >= 0; until then the ray's tmax bounds.
-            "best_t": jnp.full(lanes, jnp.inf, jnp.float32),
-            "best_id": jnp.full(lanes, -1, jnp.int32),
-            "best_row": jnp.full(lanes, -1, jnp.int32),
             "sp": jnp.zeros(lanes, jnp.int32),
         }
-        if counters:
-            lane["count"] = jnp.zeros((lanes, 3), jnp.int32)
-        if capacity:
+        if capacity:  # the hit list in place of the best hit (which nothing reads then)
             lane["list_t"] = jnp.full((lanes, capacity), jnp.inf, jnp.float32)
             lane["list_row"] = jnp.full((lanes, capacity), -1, jnp.int32)
             lane["hit_count"] = jnp.zeros(lanes, jnp.int32)
+        else:
+            # best_t is meaningful only once best_id >= 0; until then the ray's tmax bounds.
+            lane["best_t"] = jnp.full(lanes, jnp.inf, jnp.float32)
+            lane["best_id"] = jnp.full(lanes, -1, jnp.int32)
+            lane["best_row"] = jnp.full(lanes, -1, jnp.int32)
+        if counters:
+            lane["count"] = jnp.zeros((lanes, 3), jnp.int32)
         return lane
 
     # The queue: rays that can hit, in order. A ray that misses the box of all the
@@ -717,14 +718,14 @@ def traverse(traversal: Traversal, arrays, origins, directions, tmax, *, kernel:
     first element is ``(hits, rows)``: each winner's row of ``arrays["triangles"]`` as
     well (int32 [N], -1 for a miss). With ``capacity`` K > 0 (all hits) the first element
     is ``(rows, count)``: int32 [N, K] and [N] (see :func:`_run_lanes`)."""
-    if origins.shape[0] == 0 and capacity:
-        return ((jnp.zeros((0, capacity), jnp.int32), jnp.zeros(0, jnp.int32)),
-                (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.int32(0))
     if origins.shape[0] == 0:
-        empty = Hits(jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.int32),
-                     jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.float32))
-        if rows_out:
-            empty = (empty, jnp.zeros(0, jnp.int32))
+        if capacity:
+            empty = (jnp.zeros((0, capacity), jnp.int32), jnp.zeros(0, jnp.int32))
+        else:
+            empty = Hits(jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.int32),
+                         jnp.zeros(0, jnp.float32), jnp.zeros(0, jnp.float32))
+            if rows_out:
+                empty = (empty, jnp.zeros(0, jnp.int32))
         return empty, (jnp.zeros((0, 3), jnp.int32) if counters else None), jnp.int32(0)
     devs = tuple(devices) if devices is not None else tuple(cpu_devices())
     if not devs:

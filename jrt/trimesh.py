@@ -57,8 +57,7 @@ def _rays(ray_origins, ray_directions):
     """float64 [N, 3] origins and unit directions (one ray or one of either broadcast)."""
     o = np.asarray(ray_origins, dtype=np.float64)
     d = np.asarray(ray_directions, dtype=np.float64)
-    o, d = o.reshape(-1, 3) if o.size else o.reshape(0, 3), d.reshape(-1, 3) if d.size \
-        else d.reshape(0, 3)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
     if len(o) != len(d):
         if len(o) == 1 or len(d) == 1:
             o, d = np.broadcast_arrays(o, d)
@@ -118,8 +117,7 @@ class RayMeshIntersector:
         if multiple_hits:
             index_ray, index_tri, t = self._all(o, d, max_hits)
         else:
-            hits = closest_hit(self.structure, o.astype(np.float32), d.astype(np.float32),
-                               kernel=self.kernel)
+            hits = self._closest(o, d)
             triangle = np.asarray(hits.triangle)
             index_ray = np.flatnonzero(triangle >= 0)
             index_tri = triangle[index_ray].astype(np.int64)
@@ -128,6 +126,11 @@ class RayMeshIntersector:
         if not return_locations:
             return index_tri, index_ray
         return index_tri, index_ray, o[index_ray] + t[:, None] * d[index_ray]
+
+    def _closest(self, o, d):
+        """jrt's closest hits of float64 rays (traced in float32)."""
+        return closest_hit(self.structure, o.astype(np.float32), d.astype(np.float32),
+                           kernel=self.kernel)
 
     def _all(self, o, d, max_hits):
         """Every hit (at most ``max_hits`` a ray): ray, face, t, by ray then distance."""
@@ -166,9 +169,7 @@ class RayMeshIntersector:
         o, d = _rays(ray_origins, ray_directions)
         if len(o) == 0:
             return np.zeros(0, np.int64)
-        hits = closest_hit(self.structure, o.astype(np.float32), d.astype(np.float32),
-                           kernel=self.kernel)
-        return np.asarray(hits.triangle).astype(np.int64)
+        return np.asarray(self._closest(o, d).triangle).astype(np.int64)
 
     def intersects_any(self, ray_origins, ray_directions, **kwargs):
         """bool [N]: does each ray hit the mesh?"""
@@ -206,11 +207,10 @@ class RayMeshIntersector:
                               both, CONTAINS_HITS, kernel=self.kernel)
             forward, backward = np.asarray(record.count).reshape(2, -1)
             odd = forward % 2 == 1
-            agree = odd == (backward % 2 == 1)
-            free = (forward == 0) | (backward == 0)
-            decided = agree | free | (k == len(RETRY_DIRECTIONS))
-            # Agreeing rays, or the one that leaves into free space (no hit: outside).
-            contains[todo[decided]] = np.where(agree | (k == len(RETRY_DIRECTIONS)), odd,
-                                               (forward > 0) & (backward > 0))[decided]
+            # Agreeing rays, or the last direction, decide by parity; a ray that leaves
+            # into free space (no hit) decides "outside".
+            trusted = (odd == (backward % 2 == 1)) | (k == len(RETRY_DIRECTIONS))
+            decided = trusted | (forward == 0) | (backward == 0)
+            contains[todo[decided]] = (odd & trusted)[decided]
             todo = todo[~decided]
         return contains
