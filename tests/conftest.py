@@ -142,17 +142,39 @@ def camel_rays(camel):
     }
 
 
+def session_shared(name: str, compute):
+    """``compute()`` (a dict of NumPy arrays) once per test session, shared by the xdist
+    workers through the session folder: the first to ask computes it under a file lock and
+    writes it there, the others wait on the lock and read it back."""
+    folder = Path(os.environ["JRT_TEST_SESSION_DIR"]) / "shared"
+    folder.mkdir(exist_ok=True)
+    path = folder / f"{name}.npz"
+    with open(folder / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not path.exists():
+                arrays = compute()
+                with open(folder / f"{name}.tmp.npz", "wb") as f:
+                    np.savez(f, **arrays)
+                os.replace(folder / f"{name}.tmp.npz", path)
+            with np.load(path) as data:
+                return {key: data[key] for key in data.files}
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 @pytest.fixture(scope="session")
 def brute_hits(camel_brute, camel_rays):
-    """Brute force's closest hits per (kernel, ray set), computed once per session when
-    first asked (each costs 20k x 69k triangle tests)."""
+    """Brute force's closest hits per (kernel, ray set), computed once per test session
+    when first asked (each costs 20k x 69k triangle tests; :func:`session_shared`)."""
     cache = {}
 
     def get(kernel, ray_set):
         if (kernel, ray_set) not in cache:
             origins, directions = camel_rays[ray_set]
-            cache[kernel, ray_set] = as_numpy(
-                jrt.closest_hit(camel_brute, origins, directions, kernel=kernel))
+            cache[kernel, ray_set] = session_shared(
+                f"brute-hits-{kernel}-{ray_set}", lambda: as_numpy(
+                    jrt.closest_hit(camel_brute, origins, directions, kernel=kernel)))
         return cache[kernel, ray_set]
 
     return get
