@@ -282,15 +282,18 @@ def _overlap_block(corners, lo, hi):
 MIN_LEAF_BITS = 4
 
 
-def leaf_bits_for(max_count: int, slots: int) -> int:
+def leaf_bits_for(max_count: int, slots: int, max_first: int | None = None) -> int:
     """Bits for a leaf's count in a leaf reference ``~((first << bits) | count)``: enough
     for ``max_count``, and at least :data:`MIN_LEAF_BITS` where that fits.
 
     ``slots`` is the number of rows (triangles or references) a leaf's ``first`` may
-    point into. Raises when the code would not fit in an int32.
+    point into; ``max_first``, when the caller knows it, the largest ``first`` of its
+    leaves (a tree whose root is one leaf of every row has 0). Raises when some leaf's code
+    would not fit in an int32.
     """
     bits = max(int(max_count).bit_length(), 1)
-    if (int(slots) + 1) << bits >= 2**31:
+    bound = int(slots) if max_first is None else int(max_first)
+    if (bound + 1) << bits >= 2**31:
         raise ValueError(f"{slots} leaf rows with leaves of up to {max_count} do not fit "
                          "an int32 leaf reference")
     if (int(slots) + 1) << MIN_LEAF_BITS < 2**31:

@@ -350,7 +350,8 @@ class LevelBuild:
         references = concatenated(self.leaf_refs, np.int32)
         max_count = int(l_count.max()) if l_count.size else 0
         try:
-            leaf_bits = leaf_bits_for(max_count, references.shape[0])
+            leaf_bits = leaf_bits_for(max_count, references.shape[0],
+                                      int(l_first.max()) if l_first.size else 0)
         except ValueError as error:
             raise ValueError(f"{kind}: {error}") from None
         # The reference of every node: interior rows in creation (breadth-first) order,

@@ -312,3 +312,27 @@ def test_soup_closest_hit_matches_brute(case):
 @given(case=kd.soups(kind=KIND))
 def test_soup_occluded_matches_brute(case):
     kd.check_soup_occluded(case, KIND, bsp_planes, oblique_rays)
+
+
+def test_one_leaf_of_every_needle_fits_its_leaf_reference():
+    """The scene suite's slivers at full size: 50,000 needles through one region, which no
+    plane separates, end in one leaf of all 50,000 references (first row 0) below empty-space
+    cuts. Its code fits an int32 (only the leaves' largest first row and count matter); the
+    bound from the total rows refused it. The BSP tree answers as brute force."""
+    import jrt
+    from jrt.raysets import incoherent_set
+    from jrt.scenes import scene_mesh
+    from jrt.trace import as_numpy
+
+    mesh = scene_mesh("slivers")
+    structure = accel.build("bsp", mesh.vertices, mesh.faces)
+    assert structure.stats["references_per_leaf_max"] == len(mesh.faces)
+    origins, directions = incoherent_set(mesh.vertices, 1024, seed=2)
+    want = as_numpy(jrt.closest_hit(accel.build("brute", mesh.vertices, mesh.faces), origins,
+                                    directions))
+    got = as_numpy(jrt.closest_hit(structure, origins, directions))
+    assert (want["triangle"] >= 0).mean() > 0.05
+    for name in ("triangle", "t", "u", "v"):
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    for name in ("triangle", "t"):
+        assert got[name].dtype == want[name].dtype
