@@ -618,9 +618,8 @@ def _flatten(tris, ids, frame, order, node_lo, node_hi, node_first, node_count, 
     if links[0]:
         left[np.concatenate(links[0])] = np.concatenate(links[1])
     interior = left >= 0
-    max_count = int(count[~interior].max()) if total else 0
     try:
-        leaf_bits = leaf_bits_for(max_count, tris.shape[0])
+        leaf_bits = leaf_bits_for(first[~interior], count[~interior], tris.shape[0])
     except ValueError as error:
         raise ValueError(f"bvh: {error}") from None
     # Binary interior rows: breadth-first order of the interior nodes; the root is row 0.

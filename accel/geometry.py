@@ -282,18 +282,19 @@ def _overlap_block(corners, lo, hi):
 MIN_LEAF_BITS = 4
 
 
-def leaf_bits_for(max_count: int, slots: int, max_first: int | None = None) -> int:
-    """Bits for a leaf's count in a leaf reference ``~((first << bits) | count)``: enough
-    for ``max_count``, and at least :data:`MIN_LEAF_BITS` where that fits.
+def leaf_bits_for(first: np.ndarray, count: np.ndarray, slots: int) -> int:
+    """Bits for a leaf's count in a leaf reference ``~((first << bits) | count)``, from the
+    leaves' ``first`` rows and ``count`` (entries of count 0 encode nothing): enough for the
+    largest count, and at least :data:`MIN_LEAF_BITS` where that fits ``slots``, the number
+    of rows (triangles or references) the leaves point into.
 
-    ``slots`` is the number of rows (triangles or references) a leaf's ``first`` may
-    point into; ``max_first``, when the caller knows it, the largest ``first`` of its
-    leaves (a tree whose root is one leaf of every row has 0). Raises when some leaf's code
-    would not fit in an int32.
+    Raises when some leaf's code would not fit in an int32. Only the leaves' largest first
+    row bounds that: a tree whose root is one leaf of every row has 0.
     """
-    bits = max(int(max_count).bit_length(), 1)
-    bound = int(slots) if max_first is None else int(max_first)
-    if (bound + 1) << bits >= 2**31:
+    max_count = int(np.max(count, initial=0))
+    bits = max(max_count.bit_length(), 1)
+    max_first = int(np.max(np.where(np.asarray(count) > 0, first, 0), initial=0))
+    if (max_first + 1) << bits >= 2**31:
         raise ValueError(f"{slots} leaf rows with leaves of up to {max_count} do not fit "
                          "an int32 leaf reference")
     if (int(slots) + 1) << MIN_LEAF_BITS < 2**31:

@@ -146,14 +146,13 @@ def default_max_depth(triangles: int, size_ratio: float = 1.0) -> int:
     return int(min(MAX_DEPTH_LIMIT, max(1, depth, reach)))
 
 
-def size_ratio(lo: np.ndarray, hi: np.ndarray) -> float:
-    """The largest side of the triangles' bounding box over the median of the triangles'
-    largest sides, from their boxes' corners ``lo``, ``hi`` [3, T] (float64; 1.0 for no
-    triangle): how many halvings the root cube needs to reach a typical triangle."""
-    if lo.shape[1] == 0:
+def size_ratio(extents: np.ndarray, lo, hi) -> float:
+    """The largest side of the triangles' bounding box (``lo``, ``hi`` [3]) over the median
+    of their own largest sides (``extents`` [T], float64; 1.0 for no triangle): how many
+    halvings the root cube needs to reach a typical triangle."""
+    if extents.shape[0] == 0:
         return 1.0
-    sides = (hi - lo).max(axis=0)
-    return float((hi.max(axis=1) - lo.min(axis=1)).max() / np.median(sides))
+    return float((np.asarray(hi) - np.asarray(lo)).max() / np.median(extents))
 
 
 def _check_params(max_leaf_size, max_depth):
@@ -304,16 +303,16 @@ def build(vertices: np.ndarray, faces: np.ndarray, *,
     c = [corners[3 * i:3 * i + 3] for i in range(3)]
     tlo = np.minimum(np.minimum(c[0], c[1]), c[2])
     thi = np.maximum(np.maximum(c[0], c[1]), c[2])
-    # CELL_MARGIN of the triangle's extent (accel.geometry.triangle_extents).
-    own = reference_margin(0.0, np.maximum(np.maximum(thi[0] - tlo[0], thi[1] - tlo[1]),
-                                           thi[2] - tlo[2]))
-    depth_limit = (default_max_depth(t_count, size_ratio(tlo, thi)) if max_depth is None
-                   else int(max_depth))
+    # Each triangle's largest side (accel.geometry.triangle_extents), and the bounds of all.
+    extent = np.maximum(np.maximum(thi[0] - tlo[0], thi[1] - tlo[1]), thi[2] - tlo[2])
+    bounds = (tlo.min(axis=1), thi.max(axis=1)) if t_count else (None, None)
+    own = reference_margin(0.0, extent)  # CELL_MARGIN of the triangle's extent
+    depth_limit = (default_max_depth(t_count, size_ratio(extent, *bounds))
+                   if max_depth is None else int(max_depth))
     points = np.stack([c[0], c[1], c[2], (c[0] + c[1]) / 2, (c[1] + c[2]) / 2,
                        (c[2] + c[0]) / 2], axis=2)
 
-    centre, half, lo32, hi32 = root_cube(*((tlo.min(axis=1), thi.max(axis=1)) if t_count
-                                           else (None, None)))
+    centre, half, lo32, hi32 = root_cube(*bounds)
     cell_lo = lo32.astype(np.float64)[None]
     cell_hi = hi32.astype(np.float64)[None]
     pair_cell = np.zeros(t_count, np.int64)
@@ -392,9 +391,9 @@ def _flatten(tris, frame, ids, row_centres, row_halves, level_split, level_first
     reference_count = references.shape[0]
     if reference_count == 0:  # no triangle: one unused slot keeps the engine's gather legal
         references = np.zeros(1, np.int32)
-    max_count = max(int(c.max()) for c in level_count)
-    try:
-        leaf_bits = leaf_bits_for(max_count, references.shape[0])
+    try:  # (interior cells have count 0 in the level arrays)
+        leaf_bits = leaf_bits_for(np.concatenate(level_first), np.concatenate(level_count),
+                                  references.shape[0])
     except ValueError as error:
         raise ValueError(f"octree: {error}") from None
     # Each level's cells as references: interior rows numbered breadth first.

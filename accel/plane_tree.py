@@ -348,10 +348,8 @@ class LevelBuild:
         l_first = concatenated(self.leaf_first, np.int64)
         l_count = concatenated(self.leaf_count, np.int64)
         references = concatenated(self.leaf_refs, np.int32)
-        max_count = int(l_count.max()) if l_count.size else 0
         try:
-            leaf_bits = leaf_bits_for(max_count, references.shape[0],
-                                      int(l_first.max()) if l_first.size else 0)
+            leaf_bits = leaf_bits_for(l_first, l_count, references.shape[0])
         except ValueError as error:
             raise ValueError(f"{kind}: {error}") from None
         # The reference of every node: interior rows in creation (breadth-first) order,

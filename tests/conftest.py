@@ -4,6 +4,7 @@ built once."""
 from __future__ import annotations
 
 import atexit
+import contextlib
 import fcntl
 import json
 import os
@@ -142,6 +143,17 @@ def camel_rays(camel):
     }
 
 
+@contextlib.contextmanager
+def session_lock(path: Path):
+    """Held by one xdist worker at a time: an exclusive file lock on ``path``."""
+    with open(path, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 def session_shared(name: str, compute):
     """``compute()`` (a dict of NumPy arrays) once per test session, shared by the xdist
     workers through the session folder: the first to ask computes it under a file lock and
@@ -149,18 +161,13 @@ def session_shared(name: str, compute):
     folder = Path(os.environ["JRT_TEST_SESSION_DIR"]) / "shared"
     folder.mkdir(exist_ok=True)
     path = folder / f"{name}.npz"
-    with open(folder / f"{name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            if not path.exists():
-                arrays = compute()
-                with open(folder / f"{name}.tmp.npz", "wb") as f:
-                    np.savez(f, **arrays)
-                os.replace(folder / f"{name}.tmp.npz", path)
-            with np.load(path) as data:
-                return {key: data[key] for key in data.files}
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    with session_lock(folder / f"{name}.lock"):
+        if not path.exists():
+            with open(folder / f"{name}.tmp.npz", "wb") as f:
+                np.savez(f, **compute())
+            os.replace(folder / f"{name}.tmp.npz", path)
+        with np.load(path) as data:
+            return {key: data[key] for key in data.files}
 
 
 @pytest.fixture(scope="session")
@@ -205,20 +212,15 @@ def quick_study():
     too, so that every reader fails with its error instead of running it again."""
     root = Path(os.environ["JRT_TEST_SESSION_DIR"])
     out, record = root / "quick-study" / "camel", root / "quick-study.json"
-    with open(root / "quick-study.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            if not record.exists():
-                run = subprocess.run(
-                    [sys.executable, "-c",
-                     "import sys; from jrt.cli import main; sys.exit(main())",
-                     *QUICK_STUDY, "-o", str(out)],
-                    cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True,
-                    timeout=1200)
-                record.write_text(json.dumps({"returncode": run.returncode,
-                                              "stdout": run.stdout, "stderr": run.stderr}))
-            done = json.loads(record.read_text())
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    with session_lock(root / "quick-study.lock"):
+        if not record.exists():
+            run = subprocess.run(
+                [sys.executable, "-c", "import sys; from jrt.cli import main; sys.exit(main())",
+                 *QUICK_STUDY, "-o", str(out)],
+                cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True,
+                timeout=1200)
+            record.write_text(json.dumps({"returncode": run.returncode,
+                                          "stdout": run.stdout, "stderr": run.stderr}))
+        done = json.loads(record.read_text())
     assert done["returncode"] == 0, done["stderr"][-3000:]
     return out, done["stdout"]

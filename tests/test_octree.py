@@ -307,10 +307,10 @@ def test_default_depth_reaches_the_triangles_size():
         assert octree.default_max_depth(1, 2.0**k * (1 + 2**-40)) == k + 1
     assert octree.default_max_depth(1, 2.0**60) == octree.MAX_DEPTH_LIMIT
     assert octree.default_max_depth(4**9, 2.0**3) == 9
-    lo = np.float64([[0, 10, 0], [0, 0, 0], [0, 0, 0]])  # [3, T]: a side of 10, 1, 1
-    hi = np.float64([[1, 11, 1], [1, 1, 1], [1, 1, 1]])
-    assert octree.size_ratio(lo, hi) == 11.0  # box side 11 over the median side 1
-    assert octree.size_ratio(np.zeros((3, 0)), np.zeros((3, 0))) == 1.0
+    sides = np.float64([10, 1, 1])  # three triangles' largest sides, in a box 11 wide
+    lo, hi = np.float64([0, 0, 0]), np.float64([11, 1, 1])
+    assert octree.size_ratio(sides, lo, hi) == 11.0  # box side 11 over the median side 1
+    assert octree.size_ratio(np.zeros(0), None, None) == 1.0
 
 
 def test_a_small_object_in_a_large_scene_is_subdivided_to_its_triangles():
