@@ -105,6 +105,7 @@ from accel.plane_tree import (
 )
 from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
+from accel.threads import thread_map, threads_for
 
 #: Defaults: 32 bins (Shevtsov et al. 2007 use 32; Wald 2007 found 16-32 within a few
 #: percent of a full sweep); the cost constants, the empty-space bonus and the leaf size are
@@ -412,10 +413,17 @@ def build(
         # Every node's best plane (nodes not wanting a split hold at most max_leaf_size
         # references: cheaper to include than to leave out).
         cost, axis, plane = np.empty(k), np.empty(k, np.int64), np.empty(k)
-        for first, end, r0, r1 in node_chunks(counts):
-            cost[first:end], axis[first:end], plane[first:end] = _best_splits(
-                box[:, r0:r1], rseg[r0:r1] - first, counts[first:end],
-                levels.lo[first:end], levels.hi[first:end], bins, ct, ci, bonus)
+        threads = threads_for(rseg.size)
+        chunks = list(node_chunks(counts, parts=threads))
+
+        def search(chunk, box=box, rseg=rseg, counts=counts, lo=levels.lo, hi=levels.hi):
+            first, end, r0, r1 = chunk
+            return _best_splits(box[:, r0:r1], rseg[r0:r1] - first, counts[first:end],
+                                lo[first:end], hi[first:end], bins, ct, ci, bonus)
+
+        for (first, end, _, _), best in zip(chunks, thread_map(search, chunks, threads),
+                                            strict=True):
+            cost[first:end], axis[first:end], plane[first:end] = best
         splitting &= cost < ci * counts
         levels.close_leaves(splitting, counts, rseg, rtri)
         nodes = np.flatnonzero(splitting)
@@ -473,21 +481,26 @@ def build(
         src = np.concatenate([sel[order.rows[0]], sel[order.rows[1]]])
         at = [np.flatnonzero(member[1][order.rows[0]]),
               order.rows[0].size + np.flatnonzero(member[0][order.rows[1]])]
-        new_box, new_poly = [box], [rpoly]
-        added = box.shape[1]
+        # Each side's straddlers to clip, taken by vertex count (stable), so that each group
+        # of _clip_groups is a run of rows here and in the pool: its results are written as
+        # slices. Both sides' pool rows are reserved first (the pool grows only then), so
+        # that the two sides are clipped on two threads, each writing its own rows.
+        jobs = []
         for side, (upper, bound, beyond) in enumerate(
                 ((True, upper0, x_hi > upper0), (False, lower1, x_lo < lower1))):
             clip = np.flatnonzero(beyond[both])
             if clip.size == 0:
                 continue
-            # Taken by vertex count (stable), so that each group of _clip_groups is a
-            # run of rows here and in the pool: its results are written as slices.
             ids = rpoly[sel[both[clip]]]
             count = np.where(ids < 0, 3, pool.count[ids])
             by_count = np.argsort(count, kind="stable")
-            clip, count, ids = clip[by_count], count[by_count], ids[by_count]
+            jobs.append((side, upper, bound, clip[by_count], count[by_count], ids[by_count],
+                         pool.reserve(clip.size)))
+
+        def clip_side(job, box=box, rtri=rtri, sel=sel, both=both, a=a):
+            """One side's straddlers clipped into its pool rows: their boxes [7, n]."""
+            _, upper, bound, clip, count, ids, start = job
             refs = sel[both[clip]]
-            start = pool.reserve(clip.size)
             p_box = np.empty((7, clip.size))
             p_box[6] = box[6, refs]
 
@@ -510,6 +523,13 @@ def build(
                 pool.poly[start + run.start:start + run.stop, :res.shape[1]] = res
                 pool.count[start + run.start:start + run.stop] = n
                 p_box[:3, run], p_box[3:6, run] = p_lo.T, p_hi.T
+            return p_box
+
+        new_box, new_poly = [box], [rpoly]
+        added = box.shape[1]
+        clip_threads = threads_for(sum(job[3].size for job in jobs) // 2)
+        for job, p_box in zip(jobs, thread_map(clip_side, jobs, clip_threads), strict=True):
+            side, clip, start = job[0], job[3], job[6]
             new_poly.append(start + np.arange(clip.size))
             new_box.append(p_box)
             src[at[side][clip]] = added + np.arange(clip.size)

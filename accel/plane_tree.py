@@ -52,6 +52,7 @@ from accel.geometry import (
     triangle_vertices,
 )
 from accel.structure import Structure
+from accel.threads import segment_runs
 
 #: Cost constants. A traversal step and a triangle test each cost one iteration of the
 #: engine's loop (``jrt.engine``), which puts K_T near K_I; measured with the kd-tree on the
@@ -118,13 +119,10 @@ def half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
 
 
-def node_chunks(counts: np.ndarray, size: int = SEARCH_CHUNK):
-    """Consecutive runs of at most ``size`` nodes of a level whose references are sorted by
-    node (``counts`` per node): (first node, end node, first reference, end reference)."""
-    ends = np.cumsum(counts)
-    for first in range(0, counts.shape[0], size):
-        end = min(first + size, counts.shape[0])
-        yield first, end, int(ends[first] - counts[first]), int(ends[end - 1])
+def node_chunks(counts: np.ndarray, size: int = SEARCH_CHUNK, parts: int = 1):
+    """Runs of at most ``size`` nodes of a level whose references are sorted by node, also
+    cut for ``parts`` threads (``accel.threads.segment_runs``)."""
+    return segment_runs(counts, size, parts)
 
 
 def split_cost(ct, ci, bonus, a_left, a_right, area, n_left, n_right):

@@ -54,7 +54,7 @@ READERS_LAST = ("test_work_precision.py", "test_inverse.py")
 FAST_FILES = frozenset({
     "test_kernels.py", "test_optics.py", "test_spectral.py", "test_normals.py",
     "test_camera.py", "test_mesh.py", "test_data.py", "test_scene.py", "test_report.py",
-    "test_architecture.py", "test_registry.py",
+    "test_architecture.py", "test_registry.py", "test_build_threads.py",
 })
 
 
