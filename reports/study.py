@@ -8,7 +8,7 @@ Runs, in this order, each writing its JSON into the output folder:
 2. the same suite on the other scenes of the scene suite (``jrt.scenes``: bunny, teapot,
    fandisk, stadium, herd, room, slivers; ``--scenes`` picks some), without its scaling,
    turntable and trimesh parts: ``scenes/NAME.json``. The generated scenes run at their
-   small size unless ``--full``;
+   small size unless ``--full`` (the full slivers with fewer rays: :data:`FULL_SCENE_RAYS`);
 3. the stability suite (``benchmarks/stability.py``): ``stability.json``;
 4. the work-precision study (``benchmarks/work_precision.py``): ``work_precision.json``;
 5. the worked inverse problems (``benchmarks/inverse.py``, gradient descent through the
@@ -149,6 +149,21 @@ SCENE_SIZES = {
 }
 SCENE_PARTS_OFF = ["--scaling", "0", "--turntable-frames", "0", "--trimesh-rays", "0",
                    "--interface-rays", "0"]
+#: Scenes whose rays cost far more than the others' at the full size, run there with fewer
+#: rays: the full slivers' 50,000 crossing needles, which Embree traces at 0.03 Mrays/s
+#: on 2 cores, the BVH at 0.004 and the BSP tree (one leaf of every needle) at 0.001
+#: (2026-12-07): at the full study's 262,144 camera rays a single BSP call takes over
+#: four minutes, and the scene alone hours.
+FULL_SCENE_RAYS = {"slivers": ["--camera-size", "128", "--rays", "8192", "--builds", "3",
+                               "--repeats", "3"]}
+
+
+def scene_options(name: str, size: str) -> list[str]:
+    """The benchmark suite's options for scene ``name`` in a study of ``size`` (quick,
+    default, full): :data:`SCENE_SIZES`, then :data:`FULL_SCENE_RAYS` (the last of a
+    repeated option counts), then :data:`SCENE_PARTS_OFF`."""
+    fewer = FULL_SCENE_RAYS.get(name, []) if size == "full" else []
+    return [*SCENE_SIZES[size], *fewer, *SCENE_PARTS_OFF]
 
 
 def scene_names(text: str) -> list[str]:
@@ -266,8 +281,8 @@ def main(argv=None, prog: str = PROG) -> int:
     def run_scenes():
         for name, path in scenes.items():
             print(f"[study] scenes: {name}", flush=True)
-            _ok(_step_main("bench")(["-o", str(path), "--scene", name, *SCENE_SIZES[size],
-                                     *SCENE_PARTS_OFF, *structures]))
+            _ok(_step_main("bench")(["-o", str(path), "--scene", name,
+                                     *scene_options(name, size), *structures]))
 
     step("scenes", run_scenes)
     for name in ("stability", "work_precision"):

@@ -106,3 +106,23 @@ def test_study_scenes_are_checked_and_in_the_suites_order(tmp_path, capsys):
             parser.parse_args(["--scenes", bad])
         assert "allowed: bunny, teapot, fandisk, stadium, herd, room, slivers" in (
             capsys.readouterr().err)
+
+
+def test_full_study_runs_the_slivers_with_fewer_rays():
+    """The options the scenes step gives the benchmark suite, as its parser reads them:
+    every generated scene at its study size, the full slivers with the fewer rays of
+    FULL_SCENE_RAYS (the later option wins), the suite's extra parts off."""
+    from benchmarks.suite import build_parser
+    from reports.study import OTHER_SCENES, scene_options
+
+    parser = build_parser()
+    for name in OTHER_SCENES:
+        for size, scene_size in (("default", "small"), ("full", "full")):
+            args = parser.parse_args(["--scene", name, *scene_options(name, size)])
+            assert args.scene_size == scene_size
+            assert (args.scaling, args.turntable_frames, args.trimesh_rays,
+                    args.interface_rays) == (0, 0, 0, 0)
+            fewer = size == "full" and name == "slivers"
+            assert (args.rays, args.camera_size) == ((8192, 128) if fewer else
+                                                     (65536, 256) if size == "default"
+                                                     else (131072, 512))
