@@ -70,6 +70,7 @@ import accel
 import jrt  # noqa: F401  (XLA flags before JAX starts its backend)
 import jrt.data
 import jrt.raysets
+from accel.threads import build_threads
 from benchmarks.build_scaling import build_times, fit_exponent, ns_per_n_log2_n, subdivide
 from benchmarks.common import cost_model, jsonable, rates, summary, time_calls, write_record
 from benchmarks.peers import (
@@ -283,7 +284,8 @@ def git_commit() -> str | None:
 
 
 def machine_record(devices, requested: str | None) -> dict:
-    """CPU, cores, JAX devices, library versions, git commit and date."""
+    """CPU, cores, the builders' threads (``accel.threads``), JAX devices, library versions,
+    git commit and date."""
     versions = {name: _version(dist, module) for name, dist, module in (
         ("jrt", "jrt", None), ("jax", "jax", None), ("jaxlib", "jaxlib", None),
         ("numpy", "numpy", None), ("embreex", "embreex", None), ("trimesh", "trimesh", None),
@@ -295,6 +297,7 @@ def machine_record(devices, requested: str | None) -> dict:
         affinity = os.cpu_count() or 1
     return {
         "cpu": _cpu_model(), "cores": os.cpu_count() or 1, "cores_usable": affinity,
+        "build_threads": build_threads(),
         "os": platform.platform(), "python": platform.python_version(),
         "device": {"requested": requested, "platform": devices[0].platform,
                    "kind": devices[0].device_kind, "count": len(devices),

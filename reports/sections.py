@@ -642,6 +642,7 @@ def section_machine(doc: Doc, inputs: Inputs) -> None:
         rows = [["CPU", m.get("cpu")],
                 ["cores", f"{m.get('cores')}" + (f" ({m['cores_usable']} usable)"
                                                  if m.get("cores_usable") else "")],
+                ["build threads", m.get("build_threads")],
                 ["OS", m.get("os")], ["Python", m.get("python")],
                 ["JAX devices", f"{dev.get('count')} x {dev.get('platform')} "
                                 f"({dev.get('kind')})" if dev else None],

@@ -252,6 +252,9 @@ def test_report_files_and_figures(full_report):
                     "### Cost model", "## Error against run time", "## Numerical stability",
                     "## Renders", "## Machine and versions"):
         assert section in text, section
+    # The machine's row of the builders' threads, as accel.threads counts them here.
+    from accel.threads import build_threads
+    assert f"| build threads | {build_threads()} |" in text
 
 
 def test_every_figure_names_its_command(full_report, bench_results):
