@@ -80,13 +80,12 @@ from accel.plane_tree import (
     check_params,
     default_max_depth,
     half_area,
-    node_chunks,
+    search_level,
     split_cost,
     tree_triangles,
 )
 from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
-from accel.threads import thread_map, threads_for
 
 #: Defaults: 16 bins (the orientations multiply the candidates: 16 offsets along up to 9
 #: normals). The diagonals and 2 triangle planes at nodes of 64 references or more, the
@@ -383,19 +382,16 @@ def build(
             g_lo, g_hi = levels.lo[nodes], levels.hi[nodes]
             g_cost, g_offset = np.empty(nodes.size), np.empty(nodes.size)
             g_pick = np.empty(nodes.size, np.int64)
-            threads = threads_for(g_seg.size)
-            chunks = list(node_chunks(g_counts, parts=threads))
 
-            def search(chunk, pmin=pmin, pmax=pmax, g_ext=g_ext, g_seg=g_seg,
+            def search(run, pmin=pmin, pmax=pmax, g_ext=g_ext, g_seg=g_seg,
                        g_counts=g_counts, cand=cand, exact=exact, g_lo=g_lo, g_hi=g_hi):
-                first, end, r0, r1 = chunk
+                first, end, r0, r1 = run
                 return _best_planes(pmin[r0:r1], pmax[r0:r1], g_ext[r0:r1],
                                     g_seg[r0:r1] - first, g_counts[first:end],
                                     cand[first:end], exact[first:end], g_lo[first:end],
                                     g_hi[first:end], bins, ct, ci, bonus)
 
-            for (first, end, _, _), best in zip(chunks, thread_map(search, chunks, threads),
-                                                strict=True):
+            for first, end, best in search_level(g_counts, search):
                 g_cost[first:end], g_pick[first:end], g_offset[first:end] = best
             cost[nodes], offset[nodes] = g_cost, g_offset
             normal[nodes] = cand[np.arange(nodes.size), g_pick]

@@ -99,7 +99,7 @@ from accel.plane_tree import (
     check_params,
     default_max_depth,
     half_area,
-    node_chunks,
+    search_level,
     split_cost,
     tree_triangles,
 )
@@ -413,16 +413,13 @@ def build(
         # Every node's best plane (nodes not wanting a split hold at most max_leaf_size
         # references: cheaper to include than to leave out).
         cost, axis, plane = np.empty(k), np.empty(k, np.int64), np.empty(k)
-        threads = threads_for(rseg.size)
-        chunks = list(node_chunks(counts, parts=threads))
 
-        def search(chunk, box=box, rseg=rseg, counts=counts, lo=levels.lo, hi=levels.hi):
-            first, end, r0, r1 = chunk
+        def search(run, box=box, rseg=rseg, counts=counts, lo=levels.lo, hi=levels.hi):
+            first, end, r0, r1 = run
             return _best_splits(box[:, r0:r1], rseg[r0:r1] - first, counts[first:end],
                                 lo[first:end], hi[first:end], bins, ct, ci, bonus)
 
-        for (first, end, _, _), best in zip(chunks, thread_map(search, chunks, threads),
-                                            strict=True):
+        for first, end, best in search_level(counts, search):
             cost[first:end], axis[first:end], plane[first:end] = best
         splitting &= cost < ci * counts
         levels.close_leaves(splitting, counts, rseg, rtri)

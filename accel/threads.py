@@ -25,8 +25,6 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
-import numpy as np
-
 ENV_VARIABLE = "JRT_BUILD_THREADS"
 #: Threads by default, at most: beyond a few, a level's passes are too short to share.
 DEFAULT_MAX_THREADS = 8
@@ -100,24 +98,3 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int | None = N
         pool = _pool
     return list(pool.map(_worker(fn), items))
 
-
-def segment_runs(counts: np.ndarray, size: int, parts: int = 1):
-    """Consecutive runs of at most ``size`` segments (a tree level's nodes, their rows
-    sorted by node, ``counts`` rows each): (first segment, end segment, first row, end
-    row).
-
-    With ``parts`` > 1 the runs are also cut where the rows reach each ``1/parts`` of the
-    level (at a segment boundary), so that a level of few large segments still gives a
-    run to each of ``parts`` threads.
-    """
-    k = counts.shape[0]
-    if k == 0:
-        return
-    ends = np.cumsum(counts)
-    cuts = set(range(0, k, size))
-    if parts > 1 and k > 1:
-        share = ends[-1] * np.arange(1, parts) / parts
-        cuts.update(int(i) for i in np.searchsorted(ends, share, side="right") if 0 < i < k)
-    starts = sorted(cuts)
-    for first, end in zip(starts, starts[1:] + [k], strict=True):
-        yield first, end, int(ends[first] - counts[first]), int(ends[end - 1])

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import accel
+import accel.plane_tree as plane_tree
 import accel.threads as threads
 
 
@@ -68,12 +69,12 @@ def test_thread_map_is_the_loop(monkeypatch):
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3, 8])
-def test_segment_runs_cover_the_level(parts):
+def test_node_chunks_cover_the_level(parts):
     rng = np.random.default_rng(parts)
     counts = rng.integers(1, 50, size=1000)
     counts[:3] = 5000  # a few large segments first, as on a tree's upper levels
     ends = np.cumsum(counts)
-    runs = list(threads.segment_runs(counts, 128, parts))
+    runs = list(plane_tree.node_chunks(counts, 128, parts))
     # Consecutive, covering, at most 128 segments each, rows matching the counts.
     assert runs[0][0] == 0 and runs[-1][1] == counts.size
     for (first, end, r0, r1), following in zip(runs, runs[1:] + [None], strict=True):
@@ -86,7 +87,7 @@ def test_segment_runs_cover_the_level(parts):
     for share in range(1, parts):
         at = int(np.searchsorted(ends, ends[-1] * share / parts, side="right"))
         assert at in starts or at == counts.size
-    assert list(threads.segment_runs(np.zeros(0, np.int64), 128, parts)) == []
+    assert list(plane_tree.node_chunks(np.zeros(0, np.int64), 128, parts)) == []
 
 
 @pytest.mark.parametrize("name", ["kdtree", "bsp"])
