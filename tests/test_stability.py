@@ -51,6 +51,42 @@ def test_oracle_agrees_with_jrt_brute_force_on_clean_rays():
     assert np.isfinite(t64).sum() == 300
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_brute_hits_keeps_the_k_nearest_pairs_of_t_and_row(dtype):
+    """The suite's all-hits brute force (case 1's k nearest hits, the oracle's among them)
+    against NumPy's sort of every (t, row) pair. The kernel is a stand-in whose t are small
+    integers, exact in any program: many rays have more hits than k, many equal t (ties
+    within a chunk of triangles and across chunks) and some rays none."""
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(3)
+    n_tris, n_rays, k = 150, 300, 16
+    tris = np.zeros((n_tris, 3, 3), dtype)
+    tris[:, 0, 0] = rng.integers(1, 12, n_tris)  # the t this triangle gives
+    tris[:, 0, 1] = rng.uniform(0, 1, n_tris)  # hit by rays whose origin's y is above
+    o = np.zeros((n_rays, 3), dtype)
+    o[:, 1] = rng.uniform(-0.1, 1, n_rays)
+    o[:, 2] = rng.integers(0, 3, n_rays)  # added to t
+    d = np.tile(np.asarray([0, 0, 1], dtype), (n_rays, 1))
+
+    def kernel(origin, direction, v0, v1, v2):  # (brute_hits pads with zero triangles)
+        hit = (v0[..., 1] <= origin[..., 1]) & (v0[..., 0] > 0)
+        t = jnp.where(hit, v0[..., 0] + origin[..., 2], jnp.inf)
+        return t, jnp.zeros_like(t), jnp.zeros_like(t)
+
+    t, rows = stability.brute_hits(tris, o, d, kernel, k=k, dtype=dtype, tri_chunk=32)
+    t_all = np.where(tris[None, :, 0, 1] <= o[:, None, 1],
+                     tris[None, :, 0, 0].astype(np.float64) + o[:, None, 2], np.inf)
+    for ray in range(n_rays):
+        order = np.lexsort((np.arange(n_tris), t_all[ray]))[:k]
+        want_t = t_all[ray, order]
+        np.testing.assert_array_equal(t[ray], want_t)
+        np.testing.assert_array_equal(rows[ray], np.where(np.isfinite(want_t), order, -1))
+    hits = np.isfinite(t_all).sum(axis=1)
+    assert (hits > k).sum() > 100 and (hits == 0).sum() > 5
+    assert (t[:, 1:] == t[:, :-1]).sum() > 1000  # ties
+
+
 # --- Cases 1 to 6 at the quick size: the quick study's record ------------------------------
 
 
