@@ -77,13 +77,17 @@ def write_record(record: dict, path: str) -> Path:
     return out
 
 
-def time_calls(fn, repeats: int) -> list[float]:
-    """Wall time of each of ``repeats`` calls of ``fn`` (seconds), in call order."""
+def time_calls(fn, repeats: int, budget: float | None = None) -> list[float]:
+    """Wall time of each of ``repeats`` calls of ``fn`` (seconds), in call order; with a
+    ``budget`` (seconds), no further call once the calls have taken that long (at least
+    one call)."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
         times.append(time.perf_counter() - start)
+        if budget is not None and sum(times) >= budget:
+            break
     return times
 
 

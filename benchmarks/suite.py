@@ -19,11 +19,12 @@ One run measures, in this order, and writes one record per measurement under
   order (evenly spaced ones, or repeated up to ``--rays``), so that sets of one query share
   one shape, and one compiled query (a compile costs seconds here). jrt's first call
   (compile and run) is recorded apart; rates are the median, min and max of ``--repeats``
-  warm calls (``jax.block_until_ready``), and every row carries its ratio to Embree's
-  median rate on the same rays. Per ray: traversal steps, triangle tests, leaves (mean,
-  p95, max), from a separate run with the engine's counters. trimesh's rtree intersector
-  runs on ``--trimesh-rays`` of each set (one call, one thread) when ``rtree`` is
-  installed; Open3D and Mitsuba 3 (llvm) when importable.
+  warm calls (``jax.block_until_ready``; fewer, at least one, once they have taken
+  :data:`TRACE_BUDGET_SECONDS`: a BSP tree on the slivers takes 10-25 s a call), and
+  every row carries its ratio to Embree's median rate on the same rays. Per ray: traversal
+  steps, triangle tests, leaves (mean, p95, max), from a separate run with the engine's
+  counters. trimesh's rtree intersector runs on ``--trimesh-rays`` of each set (one call,
+  one thread) when ``rtree`` is installed; Open3D and Mitsuba 3 (llvm) when importable.
 - ``correctness``: every structure's hits on ``--brute-rays`` distinct rays of each set
   (all of them, some repeated, when a set has fewer) against brute force (same kernel:
   triangle, t, u, v bit for bit; ``occluded`` for shadow rays), and, for orientation,
@@ -460,6 +461,12 @@ def _counter_summary(counts) -> dict:
     return out
 
 
+#: A structure's timed calls on one set stop once they have taken this long (seconds):
+#: at that length one call's time varies by well under a percent (the BSP tree's on the
+#: slivers, 0.1-0.6 % over three calls), and further calls only lengthen the run.
+TRACE_BUDGET_SECONDS = 10.0
+
+
 class Tracer:
     """Runs jrt's queries: one call, or the timed repeats of one structure on one set."""
 
@@ -490,7 +497,7 @@ class Tracer:
             if not kept:
                 kept.append(out)
 
-        times = time_calls(call, self.repeats)
+        times = time_calls(call, self.repeats, TRACE_BUDGET_SECONDS)
         first = kept[0]
         _, counts = self.call(structure, arrays, query, counters=True)
         if query == "occluded":
@@ -738,10 +745,11 @@ def run(args) -> dict:
             for counters in (False, True):
                 tasks.append(((name, set_name, counters), lambda s=built[name],
                               a=arrays[set_name], q=query, c=counters: tracer.call(s, a, q, c)))
+    brute_first = {}  # the first calls' answers: the references of those sets
     for query in dict.fromkeys(s.query for s in sets.values()):
         s = next(s for s in sets.values() if s.query == query)
-        tasks.append((("brute", s.name, False), lambda s=s: _brute_reference(
-            brute, s, subsets[s.name], args.kernel)))
+        tasks.append((("brute", s.name, False), lambda s=s: brute_first.setdefault(
+            s.name, _brute_reference(brute, s, subsets[s.name], args.kernel))))
     first = first_calls(tasks, quiet, "compile")
     log("first calls (compile and run): " + ", ".join(
         f"{k[0]} {sets[k[1]].query} "
@@ -763,7 +771,9 @@ def run(args) -> dict:
         records.append(row)
         log(f"{ray_set.name:<10} embree   {row['mrays_per_s']['median']:8.3f} Mrays/s")
         idx = subsets[ray_set.name]
-        reference = _brute_reference(brute, ray_set, idx, args.kernel)
+        reference = brute_first.pop(ray_set.name, None)
+        if reference is None:
+            reference = _brute_reference(brute, ray_set, idx, args.kernel)
         for name in names:
             m = tracer.measure(built[name], arrays[ray_set.name], ray_set.query)
             rate = rates(ray_set.rays, m["times"])
@@ -863,6 +873,7 @@ def run(args) -> dict:
                  "note": s.note} for s in sets.values()],
             "derived_from": derived, "ray_offset": OFFSET * mesh.diagonal,
             "glass_index": GLASS_INDEX, "builds": p["builds"], "repeats": p["repeats"],
+            "trace_budget_seconds": TRACE_BUDGET_SECONDS,
             "brute_rays": p["brute_rays"], "trimesh_rays": p["trimesh_rays"],
             "scaling_meshes": p["scaling"], "scaling_builds": p["scaling_builds"],
             "scaling_repeats": p["scaling_repeats"], "embree_threads": threads,

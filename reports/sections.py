@@ -115,6 +115,10 @@ def section_structures(doc: Doc, b: Bench, out: Path, prefix: str) -> None:
         + (f"; ray sets: {join_words(set_desc)}" if set_desc else "")
         + (f"; {p['repeats']} warm calls per structure and set (median, min, max)"
            if p.get("repeats") else "")
+        + (f", fewer where they took {p['trace_budget_seconds']:g} s (at least one)"
+           if p.get("repeats") and p.get("trace_budget_seconds") and any(
+               isinstance(t.get("repeats"), list) and len(t["repeats"]) < p["repeats"]
+               for t in traces.values()) else "")
         + (f", {p['builds']} builds per structure" if p.get("builds") else "")
         + (f"; Embree (embreex, robust mode, {p['embree_threads']} threads) on the same rays "
            "in the same process" if p.get("embree_threads") else "")

@@ -57,6 +57,26 @@ def test_validate_names_the_first_problem(results):
     broken["records"][i]["repeats"].append(1.0)
     with pytest.raises(ValueError, match=rf"^\$\.records\[{i}\]\.repeats: expected 2 repeats"):
         validate(broken)
+    # Fewer timed calls only where they reached the trace budget.
+    broken = copy.deepcopy(results)
+    assert broken["parameters"]["trace_budget_seconds"] == suite.TRACE_BUDGET_SECONDS
+    broken["records"][i]["repeats"] = [suite.TRACE_BUDGET_SECONDS / 2]
+    with pytest.raises(ValueError, match=rf"^\$\.records\[{i}\]\.repeats: expected 2 repeats"):
+        validate(broken)
+    broken["records"][i]["repeats"] = [suite.TRACE_BUDGET_SECONDS]
+    validate(broken)
+
+
+def test_time_calls_stops_at_its_budget(monkeypatch):
+    """Each call takes 4 s of a stand-in clock: a budget of 10 s allows three calls (4, 8,
+    12 s), none allows all five, and a call longer than the budget is still timed once."""
+    from benchmarks import common
+
+    clock = iter(range(0, 4000, 4))  # each reading 4 s after the one before
+    monkeypatch.setattr(common.time, "perf_counter", lambda: next(clock))
+    assert common.time_calls(lambda: None, 5, budget=10.0) == [4, 4, 4]
+    assert common.time_calls(lambda: None, 5) == [4] * 5
+    assert common.time_calls(lambda: None, 5, budget=1.0) == [4]
 
 
 def test_machine_and_parameters(results, quick_study_structures):
