@@ -126,3 +126,32 @@ def test_full_study_runs_the_slivers_with_fewer_rays():
             assert (args.rays, args.camera_size) == ((8192, 128) if fewer else
                                                      (65536, 256) if size == "default"
                                                      else (131072, 512))
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs /proc (Linux)")
+def test_study_releases_each_steps_compiled_programs():
+    """Each compiled program holds mappings of its machine code; a full study in one
+    process compiled enough of them to reach the kernel's limit (vm.max_map_count) and
+    died in its stability step. After a step the study drops them: the mappings fall back
+    to what they were before the programs were compiled."""
+    import jax
+    import jax.numpy as jnp
+
+    from reports.study import release_programs
+
+    def mappings():
+        with open("/proc/self/maps") as fh:
+            return sum(1 for _ in fh)
+
+    jax.jit(lambda x: x + 1)(jnp.ones(3)).block_until_ready()  # the backend is up
+    release_programs()
+    before = mappings()
+    # Functions that stay alive, as the library's module-level ones do.
+    programs = [jax.jit(lambda x, i=i: jnp.sin(x) * i + jnp.cumsum(x) ** 2)
+                for i in range(12)]
+    for i, fn in enumerate(programs):
+        fn(jnp.ones(100 + i)).block_until_ready()  # a shape of its own: a compile each
+    compiled = mappings()
+    release_programs()
+    assert compiled - before >= 12  # the programs took mappings
+    assert mappings() - before < (compiled - before) / 4

@@ -58,9 +58,10 @@ def _merge_smallest(best_t, best_i, t, rows):
 
     The chunk's hits are taken one at a time, smallest (t, row) first, for as long as some
     ray has one below its k-th: a ray crosses few of a chunk's triangles, so this is a few
-    passes over the chunk, where a top-k of the concatenation sorts it (XLA:CPU's top-k
-    runs a full sort for float64: 20x the time of the float32 one). An entering hit goes
-    after the entries of equal t, which have lower rows.
+    passes over the chunk, where a top-k of the concatenation sorts it (XLA:CPU's top-k is
+    fast for float32 only: case 1's float64 oracle on 10,000 rays of the camel took 80 s
+    that way and 9.5 s this way, 2 cores). An entering hit goes after the entries of equal
+    t, which have lower rows.
     """
     slot = lax.broadcasted_iota(jnp.int32, best_t.shape, 1)
 
