@@ -30,8 +30,8 @@ Defaults take about 15 minutes on 2 cores (the full benchmark suite, the stabili
 at its ``standard`` size, the work-precision study's quick points, both inverse problems at
 150 steps), and the scenes step about 7 more (404 s on a 2-core AMD EPYC); ``--full``
 runs the stability suite's full sweep, every work-precision point, 300 inverse steps and
-every scene at its full size as well (65 minutes on a 2-core AMD EPYC Zen 2, 2026-12-07:
-bench 7, scenes 32, stability 20, work-precision 3, inverse 2, renders 1; what
+every scene at its full size as well (56 minutes on a 2-core AMD EPYC Zen 2, 2026-12-07:
+bench 7, scenes 29, stability 14, work-precision 3, inverse 2, renders 1.5; what
 ``reports/camel/`` is published from); ``--quick`` (small ray sets, the 19k camel where a
 step allows it, small images) about five minutes, and is what CI runs.
 ``--structures`` limits the benchmark suite to some acceleration structures (brute
@@ -80,7 +80,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "differentiable renderer; needs optax) and renders of the "
         "built-in scenes, each written into DIR, then the report (README.md, index.html, "
         "figures) from all of it. The default size takes about 20 minutes on 2 cores (7 "
-        "of them the scenes), --full about 65, --quick about 5.",
+        "of them the scenes), --full about 56, --quick about 5.",
         epilog="The published study (reports/camel in the repository) is rewritten only by "
         "--publish, or by -o naming it with --full; any other size aimed at it is refused "
         "unless --force.")

@@ -89,7 +89,7 @@ def standard_params(case: int, pairs) -> dict:
 
 #: The sizes of a run: ``quick`` (CI, about two minutes), ``standard`` (the study's
 #: default, about five), ``full`` (every case at its function's defaults, the published
-#: sweep: about half an hour on two cores).
+#: sweep: about 14 minutes on two cores).
 SIZES = ("quick", "standard", "full")
 
 
@@ -207,7 +207,7 @@ def main(argv=None, prog: str = PROG) -> int:
     parser.add_argument("--size", choices=SIZES, default=None,
                         help="quick (about 2 minutes on two cores), standard (about 5: "
                              "jrt study's default) or full (every case at full size, about "
-                             "30; the default)")
+                             "14; the default)")
     parser.add_argument("--cases", default=None,
                         help=f"comma-separated case numbers (default: all, {CASES[0]}-"
                              f"{CASES[-1]})")
