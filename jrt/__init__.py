@@ -16,6 +16,7 @@ from jrt.hits import Hits
 from jrt.kernels import KERNELS, moller_trumbore, plane_barycentric, watertight
 from jrt.mesh import Mesh, MeshError, MeshWarning, load_mesh, mesh_from_arrays
 from jrt.normals import corner_normals
+from jrt.programs import clear_caches
 from jrt.refitting import refit
 from jrt.trace import closest_hit, occluded
 
@@ -47,6 +48,7 @@ __all__ = [
     "all_hits",
     "camel_path",
     "camera_rays",
+    "clear_caches",
     "closest_hit",
     "corner_normals",
     "data_dir",

@@ -69,6 +69,7 @@ from jaxtyping import ArrayLike, Float
 from jrt import wavefront, whitted
 from jrt.camera import Camera
 from jrt.params import SceneConstants, scene_constants
+from jrt.programs import program_cache
 from jrt.scene import CAUCHY_B_RANGE, INDEX_RANGE, Features, Material, Scene, load_scene
 from jrt.spectral import spectral_tables, spectrum_to_srgb
 from jrt.trace import raise_on_status
@@ -468,7 +469,7 @@ class BatchStats:
 
 #: Compiled batched programs and their measured bytes (None where the backend does not
 #: say), keyed by the renderer's static shape, the devices and the arguments' shapes.
-_COMPILED: dict = {}
+_COMPILED: dict = program_cache()
 
 
 def _compiled(args, shape, mesh: Mesh, timing: dict) -> tuple:

@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jrt.camera import Camera, camera_rays
+from jrt.programs import program_cache
 from jrt.scene import Features, Scene
 from jrt.trace import raise_on_status
 from jrt.whitted import (
@@ -96,7 +97,7 @@ class Level(NamedTuple):
 
 #: Compiled level functions, keyed by the static arguments and the argument shapes: the
 #: whole render compiles once (and a second render of the same shapes not at all).
-_COMPILED: dict = {}
+_COMPILED: dict = program_cache()
 
 
 def _check_chunk(chunk) -> int:

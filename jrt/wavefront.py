@@ -74,6 +74,7 @@ from jrt.params import (
     scene_constants,
     scene_parameters,
 )
+from jrt.programs import program_cache
 from jrt.refitting import refit
 from jrt.scene import Scene
 from jrt.trace import bucket_size, raise_on_status
@@ -99,10 +100,10 @@ _MIN_LATER = 1024
 
 #: Compiled render programs, keyed by the static arguments and the argument shapes (shared
 #: by every renderer: another scene of the same sizes and features compiles nothing).
-_COMPILED: dict = {}
+_COMPILED: dict = program_cache()
 
 #: The renderers :func:`cached_renderer` made last (each holds its capacities, measured).
-_RENDERERS: collections.OrderedDict = collections.OrderedDict()
+_RENDERERS: collections.OrderedDict = program_cache(collections.OrderedDict())
 _KEEP_RENDERERS = 8
 
 

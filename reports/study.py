@@ -315,7 +315,7 @@ def main(argv=None, prog: str = PROG) -> int:
 
 
 def release_programs() -> None:
-    """Drop the compiled programs of the step that ended (``jax.clear_caches``).
+    """Drop the compiled programs of the step that ended (``jrt.clear_caches``).
 
     Each compiled program keeps mappings of its machine code (XLA:CPU's JIT); the steps run
     in this one process, and a full study compiles enough programs (the camel, then every
@@ -326,9 +326,9 @@ def release_programs() -> None:
     """
     import gc
 
-    import jax
+    import jrt
 
-    jax.clear_caches()
+    jrt.clear_caches()
     gc.collect()
 
 

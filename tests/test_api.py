@@ -316,6 +316,25 @@ def test_the_readme_names_only_what_jrt_has():
     assert {"StackOverflowError", "TraversalError", "ImportOrderWarning"} <= set(jrt.__all__)
 
 
+def test_clear_caches_empties_the_renderers_caches_and_jaxs(monkeypatch):
+    """jrt.clear_caches empties every cache of compiled programs registered with
+    jrt.programs (the renderers' ones among them) and JAX's own caches. (Run on stand-ins,
+    so that the rest of this process keeps its compiled programs.)"""
+    from jrt import batch, host_tree, programs, wavefront
+
+    registered = [id(c) for c in programs._CACHES]
+    for cache in (wavefront._COMPILED, wavefront._RENDERERS, host_tree._COMPILED,
+                  batch._COMPILED):
+        assert id(cache) in registered
+    calls = []
+    monkeypatch.setattr(programs, "_CACHES", [])
+    monkeypatch.setattr(programs.jax, "clear_caches", lambda: calls.append("jax"))
+    mine = programs.program_cache()
+    mine["a program"] = object()
+    jrt.clear_caches()
+    assert mine == {} and calls == ["jax"]
+
+
 def test_the_readme_example_runs_and_matches_brute_force():
     """The README's Python example, as printed, in a fresh interpreter; its hits equal brute
     force's and its any-hit answer equals ``t < tmax`` of those hits."""
