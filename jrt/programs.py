@@ -12,6 +12,8 @@ allocate memory"). ``jrt study`` calls :func:`clear_caches` after each of its st
 
 from __future__ import annotations
 
+import gc
+
 import jax
 
 _CACHES: list = []
@@ -26,7 +28,9 @@ def program_cache(cache=None):
 
 def clear_caches() -> None:
     """Drop every compiled program this process holds: JAX's caches and the renderers'
-    (the next call of each compiles again)."""
+    (the next call of each compiles again). A program in a reference cycle goes with the
+    garbage collection that follows."""
     for cache in _CACHES:
         cache.clear()
     jax.clear_caches()
+    gc.collect()

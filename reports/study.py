@@ -48,6 +48,7 @@ import os
 import time
 from pathlib import Path
 
+import jrt
 from benchmarks.structures import ENGINE_STRUCTURES, structure_names
 from jrt.scenes import SCENES as SUITE_SCENES
 
@@ -265,7 +266,7 @@ def main(argv=None, prog: str = PROG) -> int:
         begun = time.perf_counter()
         print(f"[study] {name} ...", flush=True)
         result = run()
-        release_programs()
+        jrt.clear_caches()  # (jrt.programs: a study compiles past the mappings limit)
         print(f"[study] {name}: {time.perf_counter() - begun:.0f} s", flush=True)
         return result
 
@@ -285,7 +286,7 @@ def main(argv=None, prog: str = PROG) -> int:
             print(f"[study] scenes: {name}", flush=True)
             _ok(_step_main("bench")(["-o", str(path), "--scene", name,
                                      *scene_options(name, size), *structures]))
-            release_programs()
+            jrt.clear_caches()
 
     step("scenes", run_scenes)
     for name in ("stability", "work_precision"):
@@ -312,24 +313,6 @@ def main(argv=None, prog: str = PROG) -> int:
     print(f"[study] done in {time.perf_counter() - start:.0f} s: {out / 'README.md'}, "
           f"{out / 'index.html'}")
     return 0
-
-
-def release_programs() -> None:
-    """Drop the compiled programs of the step that ended (``jrt.clear_caches``).
-
-    Each compiled program keeps mappings of its machine code (XLA:CPU's JIT); the steps run
-    in this one process, and a full study compiles enough programs (the camel, then every
-    scene's structures) to reach the kernel's limit on a process's mappings
-    (``vm.max_map_count``, 65,530 by default), where the next compile fails ("LLVM
-    compilation error: Cannot allocate memory") and the process dies. Measured: a quick
-    benchmark run of one scene left about 1,800 mappings, all but 100 released here.
-    """
-    import gc
-
-    import jrt
-
-    jrt.clear_caches()
-    gc.collect()
 
 
 def _step_main(step: str):

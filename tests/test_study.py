@@ -137,7 +137,7 @@ def test_study_releases_each_steps_compiled_programs():
     import jax
     import jax.numpy as jnp
 
-    from reports.study import release_programs
+    from jrt import clear_caches as release_programs  # what the study calls after a step
 
     def mappings():
         with open("/proc/self/maps") as fh:
