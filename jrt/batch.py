@@ -469,7 +469,7 @@ class BatchStats:
 
 #: Compiled batched programs and their measured bytes (None where the backend does not
 #: say), keyed by the renderer's static shape, the devices and the arguments' shapes.
-_COMPILED: dict = program_cache()
+_COMPILED = program_cache()
 
 
 def _compiled(args, shape, mesh: Mesh, timing: dict) -> tuple:

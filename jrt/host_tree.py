@@ -97,7 +97,7 @@ class Level(NamedTuple):
 
 #: Compiled level functions, keyed by the static arguments and the argument shapes: the
 #: whole render compiles once (and a second render of the same shapes not at all).
-_COMPILED: dict = program_cache()
+_COMPILED = program_cache()
 
 
 def _check_chunk(chunk) -> int:

@@ -8,20 +8,57 @@ machine code (XLA:CPU's JIT): a long-lived process that compiles for many shapes
 or structures reaches the kernel's limit on a process's mappings (``vm.max_map_count``,
 65,530 by default on Linux), where the next compile fails ("LLVM compilation error: Cannot
 allocate memory"). ``jrt study`` calls :func:`clear_caches` after each of its steps.
+
+The renderers' caches are also bounded (:class:`ProgramCache`, the least recently used
+program goes first beyond ``maxsize``), so that a process that renders many shapes without
+calling :func:`clear_caches` holds a fixed number of them: a glass camel's renderer
+program (32x24 to 48x24 pixels, depth 3) held about 650 mappings, so a cache of
+:data:`DEFAULT_MAXSIZE` of them stays near 10,000.
 """
 
 from __future__ import annotations
 
+import collections
 import gc
 
 import jax
 
 _CACHES: list = []
 
+#: Programs a renderer's cache keeps before it drops the least recently used.
+DEFAULT_MAXSIZE = 16
 
-def program_cache(cache=None):
-    """``cache`` (a new dict when None) registered for :func:`clear_caches`."""
-    cache = {} if cache is None else cache
+
+class ProgramCache(collections.OrderedDict):
+    """A dict of compiled programs that keeps the ``maxsize`` most recently used: reading
+    an entry (``cache[key]``, ``cache.get(key)``) makes it the newest, storing one beyond
+    ``maxsize`` drops the oldest (whose program goes when nothing else holds it)."""
+
+    def __init__(self, maxsize: int = DEFAULT_MAXSIZE):
+        if isinstance(maxsize, bool) or not isinstance(maxsize, int) or maxsize < 1:
+            raise ValueError(f"maxsize must be a positive integer, not {maxsize!r}")
+        super().__init__()
+        self.maxsize = maxsize
+
+    def __getitem__(self, key):
+        value = super().__getitem__(key)
+        self.move_to_end(key)
+        return value
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+    def __setitem__(self, key, value):
+        super().__setitem__(key, value)
+        self.move_to_end(key)
+        while len(self) > self.maxsize:
+            self.popitem(last=False)
+
+
+def program_cache(maxsize: int = DEFAULT_MAXSIZE) -> ProgramCache:
+    """A new :class:`ProgramCache` of ``maxsize`` programs, registered for
+    :func:`clear_caches`."""
+    cache = ProgramCache(maxsize)
     _CACHES.append(cache)
     return cache
 

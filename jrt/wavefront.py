@@ -54,7 +54,6 @@ measured the scene, is :func:`initial_capacities`.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import functools
 import time
@@ -100,11 +99,10 @@ _MIN_LATER = 1024
 
 #: Compiled render programs, keyed by the static arguments and the argument shapes (shared
 #: by every renderer: another scene of the same sizes and features compiles nothing).
-_COMPILED: dict = program_cache()
+_COMPILED = program_cache()
 
 #: The renderers :func:`cached_renderer` made last (each holds its capacities, measured).
-_RENDERERS: collections.OrderedDict = program_cache(collections.OrderedDict())
-_KEEP_RENDERERS = 8
+_RENDERERS = program_cache(maxsize=8)
 
 
 class LevelRays(NamedTuple):
@@ -708,11 +706,7 @@ def cached_renderer(setup: RenderSetup, **options) -> Renderer:
     key = (id(setup), tuple(sorted(options.items())))
     entry = _RENDERERS.get(key)
     if entry is None or entry[0] is not setup:
-        entry = (setup, renderer(setup, **options)[0])
-        _RENDERERS[key] = entry
-        while len(_RENDERERS) > _KEEP_RENDERERS:
-            _RENDERERS.popitem(last=False)
-    _RENDERERS.move_to_end(key)
+        entry = _RENDERERS[key] = (setup, renderer(setup, **options)[0])
     return entry[1]
 
 

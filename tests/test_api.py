@@ -335,6 +335,54 @@ def test_clear_caches_empties_the_renderers_caches_and_jaxs(monkeypatch):
     assert mine == {} and calls == ["jax"]
 
 
+def test_a_program_cache_keeps_the_most_recently_used():
+    """The renderers' caches are bounded: beyond ``maxsize`` the least recently used entry
+    goes (reading one, by ``[]`` or ``get``, makes it the newest), and the dropped program
+    is freed when nothing else holds it. Checked against a list kept in order of use."""
+    import gc
+    import weakref
+
+    from jrt import batch, host_tree, programs, wavefront
+
+    for cache in (wavefront._COMPILED, host_tree._COMPILED, batch._COMPILED):
+        assert isinstance(cache, programs.ProgramCache)
+        assert cache.maxsize == programs.DEFAULT_MAXSIZE
+    assert wavefront._RENDERERS.maxsize == 8
+
+    class Program:  # a stand-in that weakref can follow
+        pass
+
+    cache, order = programs.ProgramCache(maxsize=3), []  # order: oldest use first
+    made = {}
+    rng = np.random.default_rng(7)
+    for step in range(200):
+        key = int(rng.integers(6))
+        if rng.random() < 0.5:
+            got = cache.get(key)
+            assert (got is not None) == (key in order)
+            if got is not None:
+                assert got is made[key]
+                order.remove(key)
+                order.append(key)
+        else:
+            made[key] = cache[key] = Program()
+            if key in order:
+                order.remove(key)
+            order.append(key)
+            del order[:-3]
+        assert list(cache) == order, step
+    dropped = weakref.ref(made[order[0]])
+    for key in (10, 11, 12):
+        made.pop(key, None)
+        cache[key] = Program()
+    made.clear()
+    gc.collect()
+    assert dropped() is None and list(cache) == [10, 11, 12]
+    for bad in (0, -1, 2.5, True, "8"):
+        with pytest.raises(ValueError, match="maxsize"):
+            programs.ProgramCache(bad)
+
+
 def test_the_readme_example_runs_and_matches_brute_force():
     """The README's Python example, as printed, in a fresh interpreter; its hits equal brute
     force's and its any-hit answer equals ``t < tmax`` of those hits."""
