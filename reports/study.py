@@ -26,14 +26,16 @@ The output folder is ``./study`` in the working directory unless ``-o`` names an
 (``-o reports/camel --full``); any other size aimed at that folder is refused unless
 ``--force``, so that a smoke test never replaces the published figures.
 
-Defaults take about 15 minutes on 2 cores (the full benchmark suite, the stability suite
-at its ``standard`` size, the work-precision study's quick points, both inverse problems at
-150 steps), and the scenes step about 7 more (404 s on a 2-core AMD EPYC); ``--full``
+Defaults take about 27 minutes on 2 cores (the full benchmark suite, the other scenes at
+their small sizes, the stability suite at its ``standard`` size, the work-precision study's
+quick points, both inverse problems at 150 steps; 1,623 s on a 2-core AMD EPYC Zen 2,
+2026-12-07: bench 410, scenes 561, stability 375, work-precision 101, inverse 84, renders
+82, most of it compiling: each scene's suite compiles 22 traversal programs); ``--full``
 runs the stability suite's full sweep, every work-precision point, 300 inverse steps and
 every scene at its full size as well (56 minutes on a 2-core AMD EPYC Zen 2, 2026-12-07:
 bench 7, scenes 29, stability 14, work-precision 3, inverse 2, renders 1.5; what
 ``reports/camel/`` is published from); ``--quick`` (small ray sets, the 19k camel where a
-step allows it, small images) about five minutes, and is what CI runs.
+step allows it, small images) about six minutes, and is what CI runs.
 ``--structures`` limits the benchmark suite to some acceleration structures (brute
 force, its reference, always runs; the stability suite picks its own per case). A step
 that fails stops the study with its error; the JSON of the steps before it stays in the
@@ -80,8 +82,8 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "work-precision study, the worked inverse problems (gradient descent through the "
         "differentiable renderer; needs optax) and renders of the "
         "built-in scenes, each written into DIR, then the report (README.md, index.html, "
-        "figures) from all of it. The default size takes about 20 minutes on 2 cores (7 "
-        "of them the scenes), --full about 56, --quick about 5.",
+        "figures) from all of it. The default size takes about 27 minutes on 2 cores (9 "
+        "of them the scenes), --full about 56, --quick about 6.",
         epilog="The published study (reports/camel in the repository) is rewritten only by "
         "--publish, or by -o naming it with --full; any other size aimed at it is refused "
         "unless --force.")
