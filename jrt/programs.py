@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import gc
+import threading
 
 import jax
 
@@ -32,27 +33,32 @@ DEFAULT_MAXSIZE = 16
 class ProgramCache(collections.OrderedDict):
     """A dict of compiled programs that keeps the ``maxsize`` most recently used: reading
     an entry (``cache[key]``, ``cache.get(key)``) makes it the newest, storing one beyond
-    ``maxsize`` drops the oldest (whose program goes when nothing else holds it)."""
+    ``maxsize`` drops the oldest (whose program goes when nothing else holds it). A lock
+    keeps a read and its move to the end one step, for renders from several threads."""
 
     def __init__(self, maxsize: int = DEFAULT_MAXSIZE):
         if isinstance(maxsize, bool) or not isinstance(maxsize, int) or maxsize < 1:
             raise ValueError(f"maxsize must be a positive integer, not {maxsize!r}")
         super().__init__()
         self.maxsize = maxsize
+        self._lock = threading.RLock()
 
     def __getitem__(self, key):
-        value = super().__getitem__(key)
-        self.move_to_end(key)
-        return value
+        with self._lock:
+            value = super().__getitem__(key)
+            self.move_to_end(key)
+            return value
 
     def get(self, key, default=None):
-        return self[key] if key in self else default
+        with self._lock:
+            return self[key] if key in self else default
 
     def __setitem__(self, key, value):
-        super().__setitem__(key, value)
-        self.move_to_end(key)
-        while len(self) > self.maxsize:
-            self.popitem(last=False)
+        with self._lock:
+            super().__setitem__(key, value)
+            self.move_to_end(key)
+            while len(self) > self.maxsize:
+                self.popitem(last=False)
 
 
 def program_cache(maxsize: int = DEFAULT_MAXSIZE) -> ProgramCache:
