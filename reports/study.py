@@ -35,7 +35,9 @@ runs the stability suite's full sweep, every work-precision point, 300 inverse s
 every scene at its full size as well (56 minutes on a 2-core AMD EPYC Zen 2, 2026-12-07:
 bench 7, scenes 29, stability 14, work-precision 3, inverse 2, renders 1.5; what
 ``reports/camel/`` is published from); ``--quick`` (small ray sets, the 19k camel where a
-step allows it, small images) about six minutes, and is what CI runs.
+step allows it, small images) about 13 minutes (794 s on the same host: bench 117,
+scenes 400, stability 98, work-precision 106, inverse 22, renders 44), and is what CI runs
+(with ``--structures bvh --scenes stadium``).
 ``--structures`` limits the benchmark suite to some acceleration structures (brute
 force, its reference, always runs; the stability suite picks its own per case). A step
 that fails stops the study with its error; the JSON of the steps before it stays in the
@@ -83,7 +85,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "differentiable renderer; needs optax) and renders of the "
         "built-in scenes, each written into DIR, then the report (README.md, index.html, "
         "figures) from all of it. The default size takes about 27 minutes on 2 cores (9 "
-        "of them the scenes), --full about 56, --quick about 6.",
+        "of them the scenes), --full about 56, --quick about 13.",
         epilog="The published study (reports/camel in the repository) is rewritten only by "
         "--publish, or by -o naming it with --full; any other size aimed at it is refused "
         "unless --force.")
