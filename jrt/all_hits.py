@@ -53,6 +53,7 @@ from jrt import engine, trace
 from jrt.hit_derivatives import hit_tangents
 from jrt.hits import tie_window, winner_hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
+from jrt.programs import bounded_jit
 
 #: ``max_hits`` when not given: a ray through a closed mesh such as the camel crosses it
 #: 2-8 times.
@@ -180,7 +181,7 @@ def hits_of_rows(kernel: str, triangles, triangle_ids, origins, directions, rows
     return AllHits(*record, count=count, overflow=count > max_hits)
 
 
-_record = jax.jit(hits_of_rows, static_argnames=("kernel", "max_hits", "capacity"))
+_record = bounded_jit(jax.jit(hits_of_rows, static_argnames=("kernel", "max_hits", "capacity")))
 
 
 def _leading(rows, collected):

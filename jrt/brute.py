@@ -20,6 +20,7 @@ from jax import lax
 
 from jrt.hits import Hits, prefer, tie_window, winner_hits
 from jrt.kernels import get_kernel
+from jrt.programs import bounded_jit
 
 RAY_CHUNK = 256
 TRI_CHUNK = 2048
@@ -60,6 +61,7 @@ def _chunk_t(kernel, o, d, tm, tris):
     return jnp.where(t < tm[None, :], t, jnp.inf)
 
 
+@bounded_jit
 @functools.partial(jax.jit, static_argnames=("kernel", "ray_chunk", "tri_chunk", "rows_out"))
 def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: str,
                 ray_chunk: int = RAY_CHUNK, tri_chunk: int = TRI_CHUNK,
@@ -113,6 +115,7 @@ def closest_hit(triangles, triangle_ids, origins, directions, tmax, *, kernel: s
     return (hits, best_row) if rows_out else hits
 
 
+@bounded_jit
 @functools.partial(jax.jit, static_argnames=("kernel", "ray_chunk", "tri_chunk"))
 def occluded(triangles, origins, directions, tmax, *, kernel: str,
              ray_chunk: int = RAY_CHUNK, tri_chunk: int = TRI_CHUNK):
@@ -149,6 +152,7 @@ def occluded(triangles, origins, directions, tmax, *, kernel: str,
     return lax.map(per_ray_chunk, (o, d, tm, live)).reshape(-1)[:n]
 
 
+@bounded_jit
 @functools.partial(jax.jit, static_argnames=("kernel", "capacity", "ray_chunk", "tri_chunk"))
 def all_rows(triangles, origins, directions, tmax, *, kernel: str, capacity: int,
              ray_chunk: int = RAY_CHUNK, tri_chunk: int = TRI_CHUNK):

@@ -68,6 +68,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jrt.fusion import computed_once
 from jrt.hits import Hits, gather_triangles, prefer, tie_window, winner_hits
 from jrt.kernels import get_kernel
+from jrt.programs import bounded_jit
 
 #: Persistent lanes per device, by backend. CPU: a few hundred, with every loop compiled
 #: as one function (``jrt._xla``'s small-loop threshold): 1M camel rays a set on 2
@@ -645,6 +646,7 @@ def compiled_programs() -> int:
     return _traverse._cache_size()
 
 
+@bounded_jit
 @functools.partial(jax.jit, static_argnames=(
     "traversal", "kernel", "any_hit", "lanes", "stack_size", "counters", "devices",
     "rows_out", "capacity"))

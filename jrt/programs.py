@@ -9,6 +9,13 @@ or structures reaches the kernel's limit on a process's mappings (``vm.max_map_c
 65,530 by default on Linux), where the next compile fails ("LLVM compilation error: Cannot
 allocate memory"). ``jrt study`` calls :func:`clear_caches` after each of its steps.
 
+The query functions (the engine's traversal, brute force's, ``jrt.all_hits``' record) are
+jitted functions whose programs JAX keeps (up to 2,048 each); registered with
+:func:`bounded_jit`, they are dropped together once they hold more than
+:data:`MAX_QUERY_PROGRAMS` (:func:`trim_programs`, after each query): a camel traversal
+program held about 195 mappings, so a process that traces many meshes of different sizes
+(each a program of its own) stays near 31,000 instead of failing at the limit.
+
 The renderers' caches are also bounded (:class:`ProgramCache`, the least recently used
 program goes first beyond ``maxsize``), so that a process that renders many shapes without
 calling :func:`clear_caches` holds a fixed number of them: a glass camel's renderer
@@ -59,6 +66,37 @@ class ProgramCache(collections.OrderedDict):
             self.move_to_end(key)
             while len(self) > self.maxsize:
                 self.popitem(last=False)
+
+
+#: Compiled programs the functions registered with :func:`bounded_jit` may hold together.
+MAX_QUERY_PROGRAMS = 160
+
+_JITTED: list = []
+
+
+def bounded_jit(fn):
+    """Registers ``fn`` (a ``jax.jit`` function) with :func:`trim_programs`; returns it."""
+    _JITTED.append(fn)
+    return fn
+
+
+def _program_count(fn) -> int:
+    size = getattr(fn, "_cache_size", None)  # (JAX's jit functions; 0 if it ever goes)
+    return size() if size is not None else 0
+
+
+def trim_programs(limit: int | None = None) -> bool:
+    """Drops the compiled programs of every :func:`bounded_jit` function (their next calls
+    compile again) when they hold more than ``limit`` (default
+    :data:`MAX_QUERY_PROGRAMS`) together; True when it did. All at once, not the least
+    recently used: JAX keeps no order of use, and a process reaches the bound only after
+    that many compiles (minutes of them), so a drop costs little against them."""
+    limit = MAX_QUERY_PROGRAMS if limit is None else limit
+    if sum(_program_count(fn) for fn in _JITTED) <= limit:
+        return False
+    for fn in _JITTED:
+        fn.clear_cache()
+    return True
 
 
 def program_cache(maxsize: int = DEFAULT_MAXSIZE) -> ProgramCache:

@@ -62,6 +62,7 @@ from jrt.engine import Counters, StackOverflowError, TraversalError
 from jrt.hit_derivatives import hit_tangents
 from jrt.hits import Hits
 from jrt.kernels import DEFAULT_KERNEL, get_kernel
+from jrt.programs import trim_programs
 
 
 def traversal_of(structure: Structure) -> engine.Traversal:
@@ -389,6 +390,7 @@ def _query(structure, origins, directions, tmax, *, kernel, any_hit, counters, l
         out, count, status = _flat_query(**options)(structure, origins, directions, tmax)
     else:
         out, count, status = _core(structure, origins, directions, tmax, **options)
+        trim_programs()  # (the answers are computed; a dropped program compiles again)
     if not is_brute and not status_out:
         _raise_on_status(status, stack_size, rays)
     if size != n:

@@ -383,6 +383,43 @@ def test_a_program_cache_keeps_the_most_recently_used():
             programs.ProgramCache(bad)
 
 
+def test_the_query_programs_are_dropped_beyond_their_bound(monkeypatch):
+    """JAX keeps every program a jitted function compiles; the query functions (the
+    engine's traversal, brute force's, all_hits' record) are registered with
+    jrt.programs and dropped together once they hold more than the bound, after a query.
+    (Checked on stand-in jitted functions, so that this process keeps its programs; and a
+    query calls the trim once, spied on.)"""
+    import jax
+    import jax.numpy as jnp
+
+    from jrt import brute, engine, programs
+
+    all_hits = importlib.import_module("jrt.all_hits")  # (jrt.all_hits is the function)
+    for fn in (engine._traverse, brute.closest_hit, brute.occluded, brute.all_rows,
+               all_hits._record):
+        assert fn in programs._JITTED
+    assert programs.MAX_QUERY_PROGRAMS * 195 < 65_530 // 2  # mappings of camel traversals
+    one, two = jax.jit(lambda x: x + 1), jax.jit(lambda x: jnp.sin(x) * 2)
+    monkeypatch.setattr(programs, "_JITTED", [one, two])
+    for n in range(1, 4):  # three programs each, six in all
+        one(jnp.ones(n)).block_until_ready()
+        two(jnp.ones(n)).block_until_ready()
+    assert one._cache_size() == 3 and two._cache_size() == 3
+    assert not programs.trim_programs(limit=6)
+    assert one._cache_size() == 3 and two._cache_size() == 3
+    assert programs.trim_programs(limit=5)
+    assert one._cache_size() == 0 and two._cache_size() == 0
+    assert float(one(jnp.ones(1))[0]) == 2.0  # compiles again, same answer
+
+    calls = []
+    monkeypatch.setattr(trace, "trim_programs", lambda: calls.append(1))
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    s = accel.build("brute", v, np.array([[0, 1, 2]], np.int32))
+    jrt.closest_hit(s, np.array([[0.2, 0.2, 1]], np.float32),
+                    np.array([[0, 0, -1]], np.float32))
+    assert calls == [1]
+
+
 def test_the_readme_example_runs_and_matches_brute_force():
     """The README's Python example, as printed, in a fresh interpreter; its hits equal brute
     force's and its any-hit answer equals ``t < tmax`` of those hits."""
