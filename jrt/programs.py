@@ -80,11 +80,6 @@ def bounded_jit(fn):
     return fn
 
 
-def _program_count(fn) -> int:
-    size = getattr(fn, "_cache_size", None)  # (JAX's jit functions; 0 if it ever goes)
-    return size() if size is not None else 0
-
-
 def trim_programs(limit: int | None = None) -> bool:
     """Drops the compiled programs of every :func:`bounded_jit` function (their next calls
     compile again) when they hold more than ``limit`` (default
@@ -92,7 +87,7 @@ def trim_programs(limit: int | None = None) -> bool:
     recently used: JAX keeps no order of use, and a process reaches the bound only after
     that many compiles (minutes of them), so a drop costs little against them."""
     limit = MAX_QUERY_PROGRAMS if limit is None else limit
-    if sum(_program_count(fn) for fn in _JITTED) <= limit:
+    if sum(fn._cache_size() for fn in _JITTED) <= limit:  # (as jrt.engine.compiled_programs)
         return False
     for fn in _JITTED:
         fn.clear_cache()
