@@ -42,11 +42,14 @@ from jrt.trace import as_numpy
 #: The test files that take longest (minutes of a worker each), run first: xdist hands
 #: files (--dist loadfile --no-loadscope-reorder) to its workers in collection order, so a
 #: long file collected last kept one worker busy for minutes after the other had finished.
-SLOW_FILES_FIRST = ("test_study.py", "test_structures.py", "test_bench.py",
-                    "test_bvh_traversal.py", "test_octree.py")
+SLOW_FILES_FIRST = ("test_study.py", "test_structures.py", "test_bvh_traversal.py",
+                    "test_octree.py")
 #: The files that read the quick study's results (:func:`quick_study`), run last: by the
-#: time the other worker reaches them, the study (test_study.py, first) has finished.
-READERS_LAST = ("test_work_precision.py", "test_inverse.py")
+#: time the other worker reaches them, the study (test_study.py, first) has finished. A
+#: reader collected earlier held its worker idle on the study's lock (test_bench.py's
+#: first test waited 191 s of a 22 min run).
+READERS_LAST = ("test_bench.py", "test_stability.py", "test_work_precision.py",
+                "test_inverse.py")
 
 #: The fast tier (``pytest -m "not slow"``, about two minutes on 2 cores): the modules
 #: that compile no traversal of a real mesh and render nothing. Every test of the other

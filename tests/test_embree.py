@@ -4,8 +4,9 @@ A ray disagrees when one side hits and the other misses, or when both hit but |Î
 exceeds 1e-4 of the scene size (float32 on grazing rays: Embree's own t is off by up to
 about 1e-4 against float64 on this mesh). At most 1e-4 of the rays may disagree.
 
-Brute force runs on the first 20k rays of each set (its 69k tests a ray cost two minutes
-on 2 cores at 100k), the BVH on 50k. The other structures are not traced here: the
+Brute force runs on the conformance suite's 20k rays of each set (its 69k tests a ray cost
+two minutes on 2 cores at 100k; ``conftest.brute_hits`` traces them once per test session),
+the BVH on 50k. The other structures are not traced here: the
 conformance suite (``tests/test_structures.py``) checks every structure's hits equal to
 brute force's bit for bit, so Embree's agreement with brute force carries over to them;
 ``python -m benchmarks.structures_correctness`` does the same on the full 1M sets.
@@ -62,15 +63,24 @@ def compare(ours: dict, ref: dict, scene_size: float) -> dict:
     }
 
 
+@pytest.fixture(scope="module")
+def embree_brute_hits(camel_rays, embree_camel):
+    """Embree's hits on the conformance suite's rays (``conftest.camel_rays``), whose brute
+    force hits the session computes once (``conftest.brute_hits``)."""
+    return {name: embree_camel.closest_hit(o, d) for name, (o, d) in camel_rays.items()}
+
+
 @pytest.mark.parametrize("ray_set", ["camera", "incoherent"])
 @pytest.mark.parametrize("kernel", list(jrt.KERNELS))
-def test_closest_hits_match_embree(camel, structure, ray_sets, embree_hits, kernel, ray_set):
-    origins, directions = ray_sets[ray_set]
-    count = BRUTE_RAYS if structure.kind == "brute" else RAYS
-    assert len(origins) >= count
-    ours = as_numpy(jrt.closest_hit(structure, origins[:count], directions[:count],
-                                    kernel=kernel))
-    ref = {key: value[:count] for key, value in embree_hits[ray_set].items()}
+def test_closest_hits_match_embree(camel, structure, ray_sets, embree_hits, camel_rays,
+                                   brute_hits, embree_brute_hits, kernel, ray_set):
+    if structure.kind == "brute":  # the session's brute-force hits on its 20k rays
+        assert len(camel_rays[ray_set][0]) == BRUTE_RAYS
+        ours, ref = brute_hits(kernel, ray_set), embree_brute_hits[ray_set]
+    else:
+        origins, directions = ray_sets[ray_set]
+        ours = as_numpy(jrt.closest_hit(structure, origins, directions, kernel=kernel))
+        ref = embree_hits[ray_set]
     report = compare(ours, ref, camel.diagonal)
     disagree = report["only_ours"] + report["only_embree"] + report["t_apart"]
     print(f"\n{structure.kind} / {kernel} / {ray_set}: {report} -> {disagree} disagree "
