@@ -30,8 +30,9 @@ traversal's ``max_push`` entries, a wide BVH all the children it enters but the 
 Each iteration writes the step's ``max_push`` entries from the stack pointer
 unconditionally (slots above the top are free, so a lane that pushes fewer writes garbage
 nobody reads) and then reads the new top: one scatter and one gather, no copy of the
-stack. A push past ``stack_size`` sets the overflow flag, which leaves jit with the hits;
-the public functions raise :class:`StackOverflowError` (never a silent miss).
+stack. A push past ``stack_size`` sets the overflow flag and ends the loop (the answers
+are wrong from then on), which leaves jit with the hits; the public functions raise
+:class:`StackOverflowError` (never a silent miss).
 
 **Termination** is guaranteed, whatever the arrays hold: the loop also stops after an
 iteration budget that a valid structure cannot reach (see :func:`iteration_budget`), and
@@ -40,7 +41,8 @@ structure whose arrays contradict its kind (a cycle, a leaf range past the refer
 fails loudly instead of spinning forever.
 
 **Counters** (steps, triangle tests, leaves per ray) are a static option: without them
-the compiled loop carries none.
+the compiled loop carries none. A ray the loop left unanswered (a stack overflow, the
+budget) counts the work done on it so far.
 
 **Tie rule** (shared with brute force, ``jrt.hits.prefer``): the smallest ``t``; among
 hits tied within 2^-20 of ``t``, the lowest face index. Every leaf row is tested with the
@@ -597,8 +599,12 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         return s
 
     budget = iteration_budget(arrays, n, lanes)
-    s = lax.while_loop(lambda s: jnp.any(s["ray_id"] < n) & (s["iteration"] < budget),
-                       body, state)
+    # An overflow ends the loop at once: the answers are wrong whatever follows, and a BVH
+    # lane whose pushes fell off its stack kept popping the same entry until the budget
+    # (25 s instead of 2 for 128 rays of the 19k camel and a stack of 1, most of it the
+    # loop; a million rays take their whole budget).
+    s = lax.while_loop(lambda s: jnp.any(s["ray_id"] < n) & (s["iteration"] < budget)
+                       & ~s["overflow"], body, state)
     rows = s["out"][:n]
     if capacity:
         hits = (rows, s["out_hits"][:n])
@@ -606,12 +612,18 @@ def _run_lanes(traversal: Traversal, arrays, rays, *, kernel, any_hit, lanes, st
         hits = winner_hits(fn, rays, triangles, triangle_ids, rows)
     if rows_out and not capacity:  # the winners' rows too (jrt.trace's derivative rule)
         hits = (hits, rows)
-    count = s["out_count"][:n] if counters else None
+    count = None
+    if counters:  # a lane the loop left in flight (an overflow, the budget): its work so far
+        flying = jnp.where(s["ray_id"] < n, s["ray_id"], n + lane_index)
+        count = s["out_count"].at[flying].set(s["count"], unique_indices=True)[:n]
     # The rays' validity (ray_problems), from the packed rows: one place for one device
     # and for each device's share, in the program that reads the rays anyway.
     zero = jnp.int32(0)
+    # (Unfinished: the budget ended the loop; rays an overflow left unanswered are that
+    # overflow's, the first bit.)
     status = (jnp.where(s["overflow"], jnp.int32(STATUS_STACK_OVERFLOW), zero)
-              | jnp.where(jnp.any(s["ray_id"] < n), jnp.int32(STATUS_UNFINISHED), zero)
+              | jnp.where(jnp.any(s["ray_id"] < n) & ~s["overflow"],
+                          jnp.int32(STATUS_UNFINISHED), zero)
               | _bad_rays_status(rays[:, 0:3], rays[:, 3:6], rays[:, 6]))
     return hits, count, status
 

@@ -596,6 +596,25 @@ def test_stack_overflow_raises(deep_soup):
                      origins, directions, "default stack")
 
 
+def test_an_overflow_ends_the_loop_at_once(deep_soup):
+    """The first push past the stack ends the traversal: the status is the overflow alone
+    (not the iteration budget's), and no lane steps on. On one device of 64 lanes, with a
+    stack of one entry, the first step that pushes two overflows: the counters (which
+    include the work on the rays left in flight) hold at most two iterations of steps.
+    (The loop used to go on: 1,135 steps on these rays, a lane whose pushes fell off its
+    stack popping the same entry again and again.)"""
+    _, _, structure, origins, directions = deep_soup
+    bvh = fixed_shape_bvh(structure)
+    n, lanes = len(origins), 64
+    _, count, status = engine.traverse(
+        traversal_of(bvh), bvh.arrays, jnp.asarray(origins), jnp.asarray(directions),
+        jnp.full(n, jnp.inf, jnp.float32), kernel="watertight", any_hit=False, lanes=lanes,
+        stack_size=1, counters=True, devices=jax.devices()[:1])
+    assert int(status) == engine.STATUS_STACK_OVERFLOW
+    steps = int(np.asarray(count)[:, 0].sum())
+    assert 0 < steps <= 2 * lanes, steps
+
+
 TINY_MESH = (np.float32([[-1, -1, 1], [3, -1, 1], [-1, 3, 1]]), np.int32([[0, 1, 2]]))
 
 
