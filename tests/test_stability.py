@@ -282,8 +282,8 @@ def test_case8_closest_hit_rejects_nan_and_infinite_rays():
 
 def test_case9_stack_overflow_is_reported(quick_cases):
     """A deep chain of layers (a BVH deeper than 8): an 8-entry stack overflows
-    (StackOverflowError, in a subprocess so that a spinning traversal cannot hang the
-    suite), the default 64 answers."""
+    (StackOverflowError, in a subprocess so that a traversal that runs to its iteration
+    budget cannot hang the suite), the default 64 answers."""
     (res,) = [r for r in quick_cases[9]["records"] if r["check"].startswith("deep chain")]
     assert res["structure"] == "bvh" and "error" not in res, res
     assert res["depth"] > 8

@@ -32,8 +32,9 @@ structures' own errors, not the rounding of the input).
 8. ``boundaries``: wavelengths at the ends of the visible range; NaN and infinite inputs
    at the boundary.
 9. ``deep_trees``: deep trees and long traversals: stack capacity, overflow reporting
-   (probed in subprocesses, since an overflowing traversal may spin to the iteration
-   budget), and stacks of nearly coplanar layers (the tie window is not transitive).
+   (probed in subprocesses, so that an XLA abort, or a traversal that runs to its
+   iteration budget, cannot take the suite down), and stacks of nearly coplanar layers
+   (the tie window is not transitive).
 
 The JSON has, per case, ``records`` (one per kernel x structure, or per check where no
 kernel applies: cracks, false hits, NaN, max error against the oracle in float32 ulps of

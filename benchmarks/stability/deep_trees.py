@@ -1,6 +1,7 @@
 """Case 9: deep trees and long traversals: stack capacity and overflow reporting (probed
-in subprocesses, since an overflowing traversal may spin to the iteration budget), and
-stacks of nearly coplanar layers (the tie window is not transitive)."""
+in subprocesses, so that an XLA abort, or a traversal that runs to its iteration budget,
+cannot take the suite down; an overflow ends the traversal at once), and stacks of nearly
+coplanar layers (the tie window is not transitive)."""
 
 from __future__ import annotations
 
@@ -91,8 +92,9 @@ def probe_worker(spec: dict) -> dict:
 
 def stack_probe(scene: str, kind: str, sizes, kernel="watertight", rays: int = 64,
                 lanes: int = 64, timeout: float = 300, status=True, n: int = 3000) -> dict:
-    """:func:`probe_worker` in a fresh Python process, so that a traversal that spins (or
-    an XLA abort) cannot take the suite down; a crash or a timeout is itself recorded."""
+    """:func:`probe_worker` in a fresh Python process, so that a traversal that runs to its
+    iteration budget (or an XLA abort) cannot take the suite down; a crash or a timeout is
+    itself recorded."""
     spec = {"scene": scene, "kind": kind, "sizes": list(sizes), "kernel": kernel,
             "rays": rays, "lanes": lanes, "status": status, "n": n}
     code = ("import json, sys; from benchmarks.stability.deep_trees import probe_worker; "
