@@ -601,8 +601,8 @@ def test_an_overflow_ends_the_loop_at_once(deep_soup):
     (not the iteration budget's), and no lane steps on. On one device of 64 lanes, with a
     stack of one entry, the first step that pushes two overflows: the counters (which
     include the work on the rays left in flight) hold at most two iterations of steps.
-    (The loop used to go on: 1,135 steps on these rays, a lane whose pushes fell off its
-    stack popping the same entry again and again.)"""
+    (A loop that goes on after the overflow takes 1,135 steps on these rays, a lane whose
+    pushes fell off its stack popping the same entry again and again.)"""
     _, _, structure, origins, directions = deep_soup
     bvh = fixed_shape_bvh(structure)
     n, lanes = len(origins), 64
