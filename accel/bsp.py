@@ -365,28 +365,40 @@ def build(
                                        tri_normals[sampled]], axis=1)
                 exact = np.full(cand.shape[:2], np.nan)
                 exact[:, 7:] = (tri_normals[sampled] * tri64[sampled, 0]).sum(axis=2)
-                t_min, t_max = _project(
-                    tri_t[:, :, g_tri],
-                    np.repeat(tri_normals[sampled].transpose(2, 1, 0), g_counts, axis=2))
-                pmin = np.concatenate([np.take(fixed_min32, g_tri, axis=0), t_min], axis=1,
-                                      dtype=np.float32)
-                pmax = np.concatenate([np.take(fixed_max32, g_tri, axis=0), t_max], axis=1,
-                                      dtype=np.float32)
                 kind_of = np.array([0, 0, 0, 1, 1, 1, 1] + [2] * triangle_planes)
+
+                def extents(first, end, r0, r1, g_tri=g_tri, g_counts=g_counts,
+                            sampled=sampled):
+                    """The run's references' extents along the 7 fixed normals and their
+                    nodes' sampled triangles' normals, [r1 - r0, C] float32 each (in the
+                    search's thread: the projection is the level's largest pass)."""
+                    tris = g_tri[r0:r1]
+                    normals = np.repeat(tri_normals[sampled[first:end]].transpose(2, 1, 0),
+                                        g_counts[first:end], axis=2)
+                    t_min, t_max = _project(tri_t[:, :, tris], normals)
+                    return (np.concatenate([np.take(fixed_min32, tris, axis=0), t_min],
+                                           axis=1, dtype=np.float32),
+                            np.concatenate([np.take(fixed_max32, tris, axis=0), t_max],
+                                           axis=1, dtype=np.float32))
             else:
                 cand = np.broadcast_to(fixed[:3], (nodes.size, 3, 3))
                 exact = np.full((nodes.size, 3), np.nan)
-                pmin, pmax = (np.take(a, g_tri, axis=0) for a in (axis_min32, axis_max32))
                 kind_of = np.zeros(3, np.int64)
+
+                def extents(first, end, r0, r1, g_tri=g_tri):
+                    """The run's references' extents along the axes, [r1 - r0, 3] each."""
+                    tris = g_tri[r0:r1]
+                    return np.take(axis_min32, tris, axis=0), np.take(axis_max32, tris, axis=0)
             g_counts, g_ext = counts[nodes], extent[g_tri]
             g_lo, g_hi = levels.lo[nodes], levels.hi[nodes]
             g_cost, g_offset = np.empty(nodes.size), np.empty(nodes.size)
             g_pick = np.empty(nodes.size, np.int64)
 
-            def search(run, pmin=pmin, pmax=pmax, g_ext=g_ext, g_seg=g_seg,
+            def search(run, extents=extents, g_ext=g_ext, g_seg=g_seg,
                        g_counts=g_counts, cand=cand, exact=exact, g_lo=g_lo, g_hi=g_hi):
                 first, end, r0, r1 = run
-                return _best_planes(pmin[r0:r1], pmax[r0:r1], g_ext[r0:r1],
+                pmin, pmax = extents(first, end, r0, r1)
+                return _best_planes(pmin, pmax, g_ext[r0:r1],
                                     g_seg[r0:r1] - first, g_counts[first:end],
                                     cand[first:end], exact[first:end], g_lo[first:end],
                                     g_hi[first:end], bins, ct, ci, bonus)
