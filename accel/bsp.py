@@ -140,12 +140,13 @@ def size_along(lo, hi, n):
     return (np.abs(n) * (np.asarray(hi, np.float64) - lo)).sum(axis=-1)
 
 
-def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, bins, ct,
+def _best_planes(pmin, pmax, rext, counts, normals, exact, box_lo, box_hi, bins, ct,
                  ci, bonus):
     """Best plane of every node of a group: (cost, normal index, offset) [K] each.
 
     ``pmin``, ``pmax`` [R, C] (float32): the extent of each reference's triangle along each
-    of its node's candidate normals ``normals`` [K, C, 3] (references sorted by node ``seg``);
+    of its node's candidate normals ``normals`` [K, C, 3] (references sorted by node,
+    ``counts`` [K] per node, none 0);
     ``exact`` [K, C]: one more candidate offset per orientation (NaN: none).
 
     The area of a side, the bounding box of ``B ∩ {n . x <= c}``, has along axis i the
@@ -245,10 +246,12 @@ def _best_planes(pmin, pmax, rext, seg, counts, normals, exact, box_lo, box_hi, 
     nr_extra = np.where(np.arange(3) == 1, 0, full).astype(np.int64)
     cols = np.flatnonzero(np.any(extra_ok[:, :, 2], axis=0))
     if cols.size:  # exact counts at the triangles' own planes
-        plane = extra_c[:, cols, 2]
-        delta = reference_margin((n_hi - n_lo)[:, cols][seg], rext[:, None])
-        below = (pmin[:, cols] <= plane[seg] + delta).astype(np.int64)
-        above = (pmax[:, cols] >= plane[seg] - delta).astype(np.int64)
+        # (References are sorted by node: repeat is a gather without an index.)
+        plane = np.repeat(extra_c[:, cols, 2], counts, axis=0)
+        delta = reference_margin(np.repeat((n_hi - n_lo)[:, cols], counts, axis=0),
+                                 rext[:, None])
+        below = (pmin[:, cols] <= plane + delta).astype(np.int64)
+        above = (pmax[:, cols] >= plane - delta).astype(np.int64)
         nl_extra[:, cols, 2] = np.add.reduceat(below, offsets, axis=0)
         nr_extra[:, cols, 2] = np.add.reduceat(above, offsets, axis=0)
     e_left, e_right = side_areas(extra_c)
@@ -349,10 +352,7 @@ def build(
             nodes = np.flatnonzero(group)
             if nodes.size == 0:
                 continue
-            remap = np.full(k, -1, np.int64)
-            remap[nodes] = np.arange(nodes.size)
             mine = np.flatnonzero(group[rseg])
-            g_seg = remap[rseg[mine]]
             g_tri = rtri[mine]
             if use_general:
                 # Sampled triangles: evenly spaced in each node's references.
@@ -389,17 +389,17 @@ def build(
                     """The run's references' extents along the axes, [r1 - r0, 3] each."""
                     tris = g_tri[r0:r1]
                     return np.take(axis_min32, tris, axis=0), np.take(axis_max32, tris, axis=0)
-            g_counts, g_ext = counts[nodes], extent[g_tri]
+            g_counts = counts[nodes]
             g_lo, g_hi = levels.lo[nodes], levels.hi[nodes]
             g_cost, g_offset = np.empty(nodes.size), np.empty(nodes.size)
             g_pick = np.empty(nodes.size, np.int64)
 
-            def search(run, extents=extents, g_ext=g_ext, g_seg=g_seg,
-                       g_counts=g_counts, cand=cand, exact=exact, g_lo=g_lo, g_hi=g_hi):
+            def search(run, extents=extents, g_tri=g_tri, g_counts=g_counts, cand=cand,
+                       exact=exact, g_lo=g_lo, g_hi=g_hi):
                 first, end, r0, r1 = run
                 pmin, pmax = extents(first, end, r0, r1)
-                return _best_planes(pmin, pmax, g_ext[r0:r1],
-                                    g_seg[r0:r1] - first, g_counts[first:end],
+                return _best_planes(pmin, pmax, extent[g_tri[r0:r1]],
+                                    g_counts[first:end],
                                     cand[first:end], exact[first:end], g_lo[first:end],
                                     g_hi[first:end], bins, ct, ci, bonus)
 
