@@ -95,6 +95,7 @@ from accel.geometry import (
 )
 from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
+from accel.threads import thread_map, threads_for
 
 #: Defaults: 16 bins (Wald 2007 found 16-32 bins within a few percent of a full SAH
 #: sweep); costs C_T = 1/2, C_I = 1 as pbrt-v4's BVH (Pharr, Jakob & Humphreys, 4th ed.,
@@ -191,22 +192,40 @@ def _sah_splits(lo, hi, cent, seg, counts, cmin, cmax, node_area, bins, ct, ci):
     axis = np.zeros(k, np.int64)
     split_bin = np.zeros(k, np.int64)
     # Segments by size: up to 2, 4, 8, ... triangles (padded to that many slots), and the
-    # ones above ``bins``.
+    # ones above ``bins``. Each group is searched in runs of its segments, spread over
+    # threads (accel.threads): a segment's split depends on its own rows only, so the
+    # result does not depend on the runs.
     widths = [w for w in (2, 4, 8, 16, 32, 64, 128, 256) if w < bins] + [bins]
     group = np.searchsorted(np.asarray(widths), counts)
+    runs = []
     for g in np.unique(group):
-        part = group == g
-        if part.all():
+        members = np.flatnonzero(group == g)
+        # A group is cut only from 64k rows a thread: cut from 4k (accel.threads' least),
+        # the camel's small groups built no faster (0.43 against 0.41 s).
+        parts = threads_for(int(counts[members].sum()) // 16)
+        # Cut where the group's rows reach each 1/parts of them (at a segment boundary).
+        ends = np.cumsum(counts[members])
+        cuts = np.searchsorted(ends, ends[-1] * np.arange(1, parts) / parts, side="right")
+        bounds = [0, *sorted({int(c) for c in cuts if 0 < c < members.size}), members.size]
+        runs += [(g, members[i:j]) for i, j in zip(bounds, bounds[1:], strict=False)]
+
+    def search(run):
+        g, members = run
+        if members.size == k:
             args = (lo, hi, b, seg, counts, node_area)
         else:
+            part = np.zeros(k, bool)
+            part[members] = True
             rows = part[seg]
             sub_seg = (np.cumsum(part) - 1)[seg[rows]]
             args = (lo[rows], hi[rows], b[rows], sub_seg, counts[part], node_area[part])
         if g < len(widths):
-            found = _sorted_splits(*args, widths[g], bins, ct, ci)
-        else:
-            found = _binned_splits(*args, bins, ct, ci)
-        cost[part], axis[part], split_bin[part] = found
+            return _sorted_splits(*args, widths[g], bins, ct, ci)
+        return _binned_splits(*args, bins, ct, ci)
+
+    threads = threads_for(seg.shape[0])
+    for (_, members), found in zip(runs, thread_map(search, runs, threads), strict=True):
+        cost[members], axis[members], split_bin[members] = found
     return cost, axis, split_bin, b
 
 

@@ -90,7 +90,7 @@ def test_node_chunks_cover_the_level(parts):
     assert list(plane_tree.node_chunks(np.zeros(0, np.int64), 128, parts)) == []
 
 
-@pytest.mark.parametrize("name", ["kdtree", "bsp"])
+@pytest.mark.parametrize("name", ["bvh", "kdtree", "bsp"])
 def test_threaded_builds_are_the_serial_ones(name, camel19k, monkeypatch):
     """The structure's arrays and layout byte for byte, every level spread over threads
     (the row threshold lowered so that the 19k camel's levels are) or on one."""
