@@ -95,7 +95,7 @@ from accel.geometry import (
 )
 from accel.registry import StructureKind, world_planes
 from accel.structure import Structure
-from accel.threads import thread_map, threads_for
+from accel.threads import node_chunks, thread_map, threads_for
 
 #: Defaults: 16 bins (Wald 2007 found 16-32 bins within a few percent of a full SAH
 #: sweep); costs C_T = 1/2, C_I = 1 as pbrt-v4's BVH (Pharr, Jakob & Humphreys, 4th ed.,
@@ -203,11 +203,8 @@ def _sah_splits(lo, hi, cent, seg, counts, cmin, cmax, node_area, bins, ct, ci):
         # A group is cut only from 64k rows a thread: cut from 4k (accel.threads' least),
         # the camel's small groups built no faster (0.43 against 0.41 s).
         parts = threads_for(int(counts[members].sum()) // 16)
-        # Cut where the group's rows reach each 1/parts of them (at a segment boundary).
-        ends = np.cumsum(counts[members])
-        cuts = np.searchsorted(ends, ends[-1] * np.arange(1, parts) / parts, side="right")
-        bounds = [0, *sorted({int(c) for c in cuts if 0 < c < members.size}), members.size]
-        runs += [(g, members[i:j]) for i, j in zip(bounds, bounds[1:], strict=False)]
+        runs += [(g, members[first:end])
+                 for first, end, _, _ in node_chunks(counts[members], parts=parts)]
 
     def search(run):
         g, members = run

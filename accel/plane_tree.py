@@ -52,7 +52,7 @@ from accel.geometry import (
     triangle_vertices,
 )
 from accel.structure import Structure
-from accel.threads import thread_map, threads_for
+from accel.threads import node_chunks, thread_map, threads_for
 
 #: Cost constants. A traversal step and a triangle test each cost one iteration of the
 #: engine's loop (``jrt.engine``), which puts K_T near K_I; measured with the kd-tree on the
@@ -78,7 +78,7 @@ EMPTY_CUT_GAP = 2.0**-14
 #: with the bonus any empty cut "pays", and thinner and thinner slivers next to geometry
 #: lying in a plane would otherwise be cut off level after level.
 MIN_EMPTY_CUT = 2.0**-10
-#: Nodes per pass of a split search (:func:`node_chunks`): its per-candidate arrays
+#: Nodes per pass of a split search (:func:`accel.threads.node_chunks`): its per-candidate arrays
 #: ([nodes, orientations, bins] float64) then stay a few MiB, in cache and reused by the
 #: allocator, where a whole level's (up to GiBs on 1M triangles) would be mapped afresh,
 #: page by page, for every temporary. The search is per node, so the result is the same.
@@ -119,34 +119,13 @@ def half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
 
 
-def node_chunks(counts: np.ndarray, size: int = SEARCH_CHUNK, parts: int = 1):
-    """Consecutive runs of at most ``size`` nodes of a level whose references are sorted by
-    node (``counts`` per node): (first node, end node, first reference, end reference).
-
-    With ``parts`` > 1 the runs are also cut where the references reach each ``1/parts`` of
-    the level (at a node boundary), so that a level of few large nodes still gives a run to
-    each of ``parts`` threads.
-    """
-    k = counts.shape[0]
-    if k == 0:
-        return
-    ends = np.cumsum(counts)
-    cuts = set(range(0, k, size))
-    if parts > 1 and k > 1:
-        share = ends[-1] * np.arange(1, parts) / parts
-        cuts.update(int(i) for i in np.searchsorted(ends, share, side="right") if 0 < i < k)
-    starts = sorted(cuts)
-    for first, end in zip(starts, starts[1:] + [k], strict=True):
-        yield first, end, int(ends[first] - counts[first]), int(ends[end - 1])
-
-
 def search_level(counts: np.ndarray, search):
     """``search(run)`` of every run of :func:`node_chunks` (a run: first node, end node,
     first reference, end reference), the runs spread over threads (``accel.threads``, as
     many as the level's references warrant): (first node, end node, result) per run, in
     order. The search is per node, so the results do not depend on the runs."""
     threads = threads_for(int(counts.sum()))
-    runs = list(node_chunks(counts, parts=threads))
+    runs = list(node_chunks(counts, SEARCH_CHUNK, parts=threads))
     return [(run[0], run[1], best)
             for run, best in zip(runs, thread_map(search, runs, threads), strict=True)]
 

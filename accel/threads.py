@@ -27,6 +27,8 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
+import numpy as np
+
 ENV_VARIABLE = "JRT_BUILD_THREADS"
 #: Threads by default, at most: beyond a few, a level's passes are too short to share.
 DEFAULT_MAX_THREADS = 8
@@ -100,3 +102,24 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int | None = N
         pool = _pool
     return list(pool.map(_worker(fn), items))
 
+
+def node_chunks(counts: np.ndarray, size: int | None = None, parts: int = 1):
+    """Consecutive runs of at most ``size`` nodes (None: any number) of a level whose
+    references (rows) are sorted by node (``counts`` per node): (first node, end node,
+    first reference, end reference).
+
+    With ``parts`` > 1 the runs are also cut where the references reach each ``1/parts`` of
+    the level (at a node boundary), so that a level of few large nodes still gives a run to
+    each of ``parts`` threads.
+    """
+    k = counts.shape[0]
+    if k == 0:
+        return
+    ends = np.cumsum(counts)
+    cuts = set(range(0, k, size or k))
+    if parts > 1 and k > 1:
+        share = ends[-1] * np.arange(1, parts) / parts
+        cuts.update(int(i) for i in np.searchsorted(ends, share, side="right") if 0 < i < k)
+    starts = sorted(cuts)
+    for first, end in zip(starts, starts[1:] + [k], strict=True):
+        yield first, end, int(ends[first] - counts[first]), int(ends[end - 1])

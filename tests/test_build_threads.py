@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import accel
-import accel.plane_tree as plane_tree
 import accel.threads as threads
 
 
@@ -74,7 +73,7 @@ def test_node_chunks_cover_the_level(parts):
     counts = rng.integers(1, 50, size=1000)
     counts[:3] = 5000  # a few large segments first, as on a tree's upper levels
     ends = np.cumsum(counts)
-    runs = list(plane_tree.node_chunks(counts, 128, parts))
+    runs = list(threads.node_chunks(counts, 128, parts))
     # Consecutive, covering, at most 128 segments each, rows matching the counts.
     assert runs[0][0] == 0 and runs[-1][1] == counts.size
     for (first, end, r0, r1), following in zip(runs, runs[1:] + [None], strict=True):
@@ -87,7 +86,11 @@ def test_node_chunks_cover_the_level(parts):
     for share in range(1, parts):
         at = int(np.searchsorted(ends, ends[-1] * share / parts, side="right"))
         assert at in starts or at == counts.size
-    assert list(plane_tree.node_chunks(np.zeros(0, np.int64), 128, parts)) == []
+    assert list(threads.node_chunks(np.zeros(0, np.int64), 128, parts)) == []
+    # Without a size, only the shares cut: at most ``parts`` runs, covering the level.
+    whole = list(threads.node_chunks(counts, parts=parts))
+    assert len(whole) <= parts and whole[0][0] == 0 and whole[-1][1] == counts.size
+    assert [first for first, _, _, _ in whole[1:]] == [end for _, end, _, _ in whole[:-1]]
 
 
 @pytest.mark.parametrize("name", ["bvh", "kdtree", "bsp"])
