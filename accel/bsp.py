@@ -367,12 +367,11 @@ def build(
                 exact[:, 7:] = (tri_normals[sampled] * tri64[sampled, 0]).sum(axis=2)
                 kind_of = np.array([0, 0, 0, 1, 1, 1, 1] + [2] * triangle_planes)
 
-                def extents(first, end, r0, r1, g_tri=g_tri, g_counts=g_counts,
-                            sampled=sampled):
-                    """The run's references' extents along the 7 fixed normals and their
-                    nodes' sampled triangles' normals, [r1 - r0, C] float32 each (in the
-                    search's thread: the projection is the level's largest pass)."""
-                    tris = g_tri[r0:r1]
+                def extents(first, end, tris, g_counts=g_counts, sampled=sampled):
+                    """The extents of a run's triangles ``tris`` (of nodes ``first`` to
+                    ``end``) along the 7 fixed normals and their nodes' sampled triangles'
+                    normals, [len(tris), C] float32 each (in the search's thread: the
+                    projection is the level's largest pass)."""
                     normals = np.repeat(tri_normals[sampled[first:end]].transpose(2, 1, 0),
                                         g_counts[first:end], axis=2)
                     t_min, t_max = _project(tri_t[:, :, tris], normals)
@@ -385,9 +384,9 @@ def build(
                 exact = np.full((nodes.size, 3), np.nan)
                 kind_of = np.zeros(3, np.int64)
 
-                def extents(first, end, r0, r1, g_tri=g_tri):
-                    """The run's references' extents along the axes, [r1 - r0, 3] each."""
-                    tris = g_tri[r0:r1]
+                def extents(first, end, tris):
+                    """The extents of a run's triangles ``tris`` along the axes, [len(tris),
+                    3] each."""
                     return np.take(axis_min32, tris, axis=0), np.take(axis_max32, tris, axis=0)
             g_counts = counts[nodes]
             g_lo, g_hi = levels.lo[nodes], levels.hi[nodes]
@@ -397,8 +396,9 @@ def build(
             def search(run, extents=extents, g_tri=g_tri, g_counts=g_counts, cand=cand,
                        exact=exact, g_lo=g_lo, g_hi=g_hi):
                 first, end, r0, r1 = run
-                pmin, pmax = extents(first, end, r0, r1)
-                return _best_planes(pmin, pmax, extent[g_tri[r0:r1]],
+                tris = g_tri[r0:r1]
+                pmin, pmax = extents(first, end, tris)
+                return _best_planes(pmin, pmax, extent[tris],
                                     g_counts[first:end],
                                     cand[first:end], exact[first:end], g_lo[first:end],
                                     g_hi[first:end], bins, ct, ci, bonus)

@@ -8,7 +8,8 @@ search is per group of nodes of one size (large groups cut into runs). Measured 
 cores (AMD EPYC, 2026-12-07): ufuncs, sorts and gathers on arrays of 100k float64 1.7-2x
 faster on two threads, ``np.bincount`` 1.4x, ``np.repeat`` 1.1x; a whole build less (the
 Python between the calls holds the GIL): the camel's kd-tree 1.15x, its BSP tree 1.1x;
-the 1.1M-triangle herd's BVH 8.8 -> 7.7 s (2026-12-08). Every
+the 1.1M-triangle herd's BVH 7.7 s against 8.8 s with its search on one thread
+(2026-12-08). Every
 result is computed exactly as on one thread (the same operations on the same values, only
 in other threads), so a structure's arrays do not depend on the thread count;
 ``tests/test_build_threads.py`` checks that byte for byte.
